@@ -373,23 +373,54 @@ def _judge_files(darks, flats, hints) -> None:
 
     errors = []
     for paths in (darks, flats):
-        first = []
+        shapes = []
 
-        def judge(src, first=first):
+        def judge(src, shapes=shapes):
             if not len(src):  # as `radiokit info` says it
                 raise FormatError(src.path, "no frames")
-            first.append((src.path, src.frame_shape))
-            if src.frame_shape != first[0][1]:  # np.stack would say only "must have the same shape"
-                raise FormatError(src.path, f"frames are {src.frame_shape}, those of {first[0][0]} {first[0][1]}")
+            shapes.append((src.path, src.frame_shape))
 
+        found = []
         try:
             for src in open_all(paths, check=judge, **hints):
                 src.close()
         except (FormatError, ValueError, OSError) as exc:
-            # one file of darks and flats both (an experiment-style file) is named once
-            errors += [e for e in getattr(exc, "errors", [exc]) if str(e) not in map(str, errors)]
+            found = list(getattr(exc, "errors", [exc]))
+        found = _in_given_order(found + _odd_shapes(shapes), paths)
+        # one file of darks and flats both (an experiment-style file) is named once
+        errors += [e for e in found if str(e) not in map(str, errors)]
     if errors:
         raise errors[0] if len(errors) == 1 else InputErrors(errors)
+
+
+def _odd_shapes(shapes) -> list:
+    """A FormatError for each file (of ``(path, frame shape)``) whose frames are not the shape most
+    of them share (the first file's, where as many share another): np.stack would say only "must
+    have the same shape". Why not the first file's: an odd first file named every other one as
+    bad, and never itself."""
+    from collections import Counter
+
+    from radiokit.io import FormatError
+
+    if not shapes:
+        return []
+    counts = Counter(shape for _, shape in shapes)
+    panel = counts.most_common(1)[0][0]  # ties: the first seen
+    first = next(path for path, shape in shapes if shape == panel)
+    others = f" and {counts[panel] - 1} other file{'s' * (counts[panel] > 2)}" if counts[panel] > 1 else ""
+    return [
+        FormatError(path, f"frames are {shape}, those of {first}{others} {panel}")
+        for path, shape in shapes
+        if shape != panel
+    ]
+
+
+def _in_given_order(errors, paths) -> list:
+    """``errors`` sorted by where their file stands in ``paths`` (those naming none last)."""
+    where = {str(p): i for i, p in reversed(list(enumerate(paths)))}
+    return sorted(
+        errors, key=lambda e: where.get(str(getattr(e, "path", None) or getattr(e, "filename", None)), len(paths))
+    )
 
 
 def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None) -> np.ndarray:

@@ -1156,3 +1156,20 @@ def test_process_names_every_missing_experiment_file(tmp_path):
     assert res.returncode == 2 and len(lines) == 3, res.stderr
     assert [f"{n}:" in line for n, line in zip(("a.h5", "folder", "c.h5"), lines)] == [True] * 3, res.stderr
     assert "folder" in lines[1] and not (tmp_path / "res").exists()
+
+
+def test_calibrate_names_the_odd_shaped_file_not_the_files_agreeing(tmp_path):
+    """`calibrate --dark odd.tif a1.tif a2.tif a3.tif` judged each file's shape against the first
+    file's: an odd first file named every good file after it as bad (a line each, 299 lines for 300
+    darks) and never itself. The shape most files share is the panel's; the others are named."""
+    odd = tmp_path / "odd.tif"
+    tifffile.imwrite(odd, np.full((2, 8, 8), 100, np.uint16))
+    darks = [tmp_path / f"a{i}.tif" for i in range(3)]
+    for p in darks:
+        tifffile.imwrite(p, np.full((2, 32, 40), 100, np.uint16))
+    tifffile.imwrite(tmp_path / "f.tif", np.full((2, 32, 40), 1600, np.uint16))
+    res = run_cli("calibrate", "--dark", odd, *darks, "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    lines = res.stderr.splitlines()
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0].startswith(f"radiokit calibrate: {odd}: ") and "(8, 8)" in lines[0] and "(32, 40)" in lines[0]
+    assert not (tmp_path / "cal.h5").exists()
