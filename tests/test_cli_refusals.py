@@ -1173,3 +1173,23 @@ def test_calibrate_names_the_odd_shaped_file_not_the_files_agreeing(tmp_path):
     assert res.returncode == 2 and len(lines) == 1, res.stderr
     assert lines[0].startswith(f"radiokit calibrate: {odd}: ") and "(8, 8)" in lines[0] and "(32, 40)" in lines[0]
     assert not (tmp_path / "cal.h5").exists()
+
+
+def test_calibrate_judges_more_files_than_may_be_open_at_once(tmp_path):
+    """`calibrate` judged every dark's header holding all the files open: 300 single-frame TIFFs
+    under macOS's default limit of 256 open files named the last 50 "Too many open files", where
+    they had been read one at a time. Headers are judged one file at a time, as frames are read."""
+    resource = pytest.importorskip("resource")
+    if not os.path.isdir("/proc/self/fd"):
+        pytest.skip("counts open files in /proc")
+    darks = [tmp_path / f"d{i:02d}.tif" for i in range(48)]
+    for p in darks:
+        tifffile.imwrite(p, np.full((16, 16), 100, np.uint16))
+    tifffile.imwrite(tmp_path / "f.tif", np.full((2, 16, 16), 1600, np.uint16))
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (len(os.listdir("/proc/self/fd")) + 24, hard))
+    try:
+        res = run_cli("calibrate", "--dark", *darks, "--flat", tmp_path / "f.tif", "-o", tmp_path / "cal.h5")
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert res.returncode == 0, res.stderr
