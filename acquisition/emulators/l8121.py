@@ -953,10 +953,15 @@ class SocketServer(_LineServer):
         super().__init__(model, reply_terminator=reply_terminator)
         self.host, self.port = host, port
         self._drop = threading.Event()
+        self._dropped = threading.Event()
 
-    def drop_connection(self) -> None:
-        """Close the current client connection (fault injection: lost link)."""
+    def drop_connection(self, wait_s: float = 10.0) -> None:
+        """Close the current client connection (fault injection: lost link), and return once it is
+        closed (at most ``wait_s``): a caller that slept for the server's next look instead lost
+        the race on a loaded machine, its next command answered on the old connection."""
+        self._dropped.clear()
         self._drop.set()
+        self._dropped.wait(wait_s)
 
     def _open(self) -> None:
         self._listener = socket.create_server((self.host, self.port))
@@ -983,6 +988,8 @@ class SocketServer(_LineServer):
                     if not data:
                         break
                     self._answer(buf, data, conn.sendall)
+            if self._drop.is_set():
+                self._dropped.set()
             self._drop.clear()
 
     def _close(self) -> None:
