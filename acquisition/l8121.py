@@ -2183,6 +2183,12 @@ class L8121:
             self.off()
         except DeviceError as exc:
             self._log_off_failure(exc)
+        except BaseException:
+            # a stop (Ctrl-C) cut this switch-off short: ``cause`` never reaches the caller, whose
+            # line says only the stop -- the terminal read "stopped by SIGINT; tube off" and never
+            # why the beam had gone off (review s43rr2). Said here, then, once
+            logger.error("%s: %s; X-rays were being switched off for it when stopped", self.port, self._unported(cause))
+            raise
 
     def _unported(self, exc) -> str:
         """``exc``'s message without the port it begins with (the transport's and the driver's
