@@ -567,6 +567,9 @@ def _focus_modes(modes) -> tuple:
 #: the tolerances a configuration has when none is written (:meth:`SourceConfig.tolerance_ua`
 #: narrows them at a low setting; a value equal to one is taken as not written)
 _TOLERANCE_DEFAULTS = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
+#: a fault's note when its switch-off was not confirmed (the command line, which then says the
+#: switch-off's own error after the fault, drops it: the same fact twice in one line)
+OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"
 #: the step of a measured kV and µA (A's SAR reads whole numbers; B's SCU whole µA): a narrowed
 #: default tolerance is no finer, where the room allows
 _READING_STEP = 1.0
@@ -2958,7 +2961,7 @@ class L8121:
             # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
             # right above its X-RAYS warning), not only inside the fault's line
             self._log_off_failure(exc)
-            return None, "switching X-rays off could not be confirmed", exc
+            return None, OFF_NOT_CONFIRMED, exc
 
     def _error_code_note(self) -> str:
         """The note "; controller error code N" when ``SER`` reads a code after a fault's switch-off (often

@@ -1008,6 +1008,34 @@ def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confi
     assert sum("could not confirm X-rays off" in ln for ln in err) == 1, err
 
 
+def test_a_failed_source_ons_line_says_the_unconfirmed_switch_off_once():
+    """Review s43rr2: a beam not stable (or tripped) whose switch-off was not confirmed (a relay
+    stuck on) ended on one line saying the unconfirmed switch-off twice: "...; switching X-rays off
+    could not be confirmed; switching X-rays off: could not confirm X-rays off after 1 attempt(s)
+    ...". The fault, then the switch-off's outcome, each once (measured with the CLI: 15 s per run at
+    its stable_timeout_s; here the line is composed by its own functions)."""
+    from acquisition.cli import _close_after, _one_fault
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    model = L8121Model(warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="A", stable_timeout_s=0.2, off_confirm_s=0.2, off_attempts=1, poll_s=0.02)
+        src.connect()
+        model.inject_after("XON", lambda: (model.stuck_on(), model.drop_beam()))
+        with pytest.raises(DeviceError) as failed:
+            src.on(60, 250)
+        with pytest.raises(DeviceError) as closing:
+            _close_after(src, failed.value)
+        src.detach()
+        model.stuck_on(False)
+    line = str(_one_fault(closing.value, src))
+    assert line.startswith(f"{server.url}: beam not stable within"), line
+    assert len(re.findall(r"could not be confirmed|could not confirm", line)) == 1, line
+    assert "switch the source off at the controller" in line, line
+
+
 def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):
     """Found: README says `radiokit acquire` exits 2 for an option it refuses, but an existing
     output exited 1 (and did not mention --overwrite), `source on --kv 200` exited 1 after
