@@ -830,8 +830,12 @@ def _one_fault(exc, src):
         return failed
     fault = getattr(exc, "fault", None)
     if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
+        from acquisition.l8121 import OFF_NOT_CONFIRMED
+
         port = f"{src.port}: " if src is not None else ""
-        return f"{fault}; switching X-rays off: {str(exc).removeprefix(port)}"
+        # the fault's own note of the unconfirmed switch-off: the switch-off's error says it, in full
+        said = str(fault).replace(f"; {OFF_NOT_CONFIRMED}", "")
+        return f"{said}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
 

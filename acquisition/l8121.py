@@ -478,8 +478,10 @@ class SourceConfig:
         if spec == _TOLERANCE_DEFAULTS[key] and tol > room:
             # the default 5 µA is wider than the monitor's drop bound under 10 µA; refusing it left
             # `source on --ua 8` no way through (the command takes no tolerance), so a tolerance
-            # nobody wrote is narrowed to half that room: a stable beam stays apart from a dropped one
-            return room / 2
+            # nobody wrote is narrowed to half that room: a stable beam stays apart from a dropped
+            # one. Not finer than a reading's step, though (whole kV and µA, L8121.md): 0.5 µA at
+            # 2 µA never let a meter one count high read stable (review s43rr2). Never past the room
+            return min(room, max(room / 2, _READING_STEP))
         return tol
 
     def tolerance_kv(self, set_kv: float) -> float:
@@ -488,10 +490,11 @@ class SourceConfig:
 
     def tolerance_ua(self, set_ua: float) -> float:
         """The µA tolerance, absolute, around ``set_ua``: the default 5 µA, or a quarter of the set
-        value where that is less (under 10 µA with ``beam_drop_fraction = 0.5``).
+        value where that is less (under 10 µA with ``beam_drop_fraction = 0.5``), but not under a
+        reading's step, 1 µA, where half the set value allows it (2 and 3 µA).
 
-        >>> SourceConfig().tolerance_ua(250), SourceConfig().tolerance_ua(8)
-        (5.0, 2.0)
+        >>> SourceConfig().tolerance_ua(250), SourceConfig().tolerance_ua(8), SourceConfig().tolerance_ua(2)
+        (5.0, 2.0, 1.0)
         """
         return self._tolerance_at("ua_tolerance", self.ua_tolerance, set_ua)
 
@@ -564,6 +567,12 @@ def _focus_modes(modes) -> tuple:
 #: the tolerances a configuration has when none is written (:meth:`SourceConfig.tolerance_ua`
 #: narrows them at a low setting; a value equal to one is taken as not written)
 _TOLERANCE_DEFAULTS = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
+#: a fault's note when its switch-off was not confirmed (the command line, which then says the
+#: switch-off's own error after the fault, drops it: the same fact twice in one line)
+OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"
+#: the step of a measured kV and µA (A's SAR reads whole numbers; B's SCU whole µA): a narrowed
+#: default tolerance is no finer, where the room allows
+_READING_STEP = 1.0
 
 
 def _tolerance(spec: float | str, set_value: float, name: str) -> float:
@@ -2177,6 +2186,12 @@ class L8121:
             self.off()
         except DeviceError as exc:
             self._log_off_failure(exc)
+        except BaseException:
+            # a stop (Ctrl-C) cut this switch-off short: ``cause`` never reaches the caller, whose
+            # line says only the stop -- the terminal read "stopped by SIGINT; tube off" and never
+            # why the beam had gone off (review s43rr2). Said here, then, once
+            logger.error("%s: %s; X-rays were being switched off for it when stopped", self.port, self._unported(cause))
+            raise
 
     def _unported(self, exc) -> str:
         """``exc``'s message without the port it begins with (the transport's and the driver's
@@ -2946,7 +2961,7 @@ class L8121:
             # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
             # right above its X-RAYS warning), not only inside the fault's line
             self._log_off_failure(exc)
-            return None, "switching X-rays off could not be confirmed", exc
+            return None, OFF_NOT_CONFIRMED, exc
 
     def _error_code_note(self) -> str:
         """The note "; controller error code N" when ``SER`` reads a code after a fault's switch-off (often

@@ -957,6 +957,36 @@ def test_cli_source_on_says_a_poll_without_reply_once(capsys):
     assert err[-1].startswith("error:") and "X-rays off, confirmed by STS" in err[-1], err
 
 
+def test_cli_source_on_says_a_poll_without_reply_when_a_ctrl_c_cuts_its_switch_off_short(capsys):
+    """Review s43rr2: the SAR poll unanswered as the beam ramped, and Ctrl-C pressed while the
+    driver's fail-safe switched off for it. The fail-safe says the fault at INFO only (the caller's
+    error line says it), but the interrupt replaced the fault on its way to the caller: the
+    terminal read only "stopped by SIGINT; tube off", never why the beam went off. Said once."""
+    import os
+    import signal
+    import sys
+
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmed_up=True, ramp_s=0.1)
+    root = logging.getLogger()
+    console = logging.StreamHandler(sys.stderr)  # what logging.basicConfig gives the command
+    console.setLevel(logging.WARNING)
+    root.addHandler(console)
+    try:
+        with PtyServer(model) as server:
+            model.inject_after("XON", lambda: model.hold_once("SAR"))  # its reply comes after the time-out
+            model.inject_after("XOF", lambda: os.kill(os.getpid(), signal.SIGINT))  # the fail-safe's XOF
+            port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
+            code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+    finally:
+        root.removeHandler(console)
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert code == 130 and not model.xray_on, err
+    assert sum("no reply to SAR" in ln for ln in err) == 1, err
+    assert err[-1].startswith("stopped by SIGINT; tube off (confirmed by STS"), err
+
+
 def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confirmed(capsys):
     """Found (s43): the controller's reply path lost as the beam ramped up (it still executes
     commands): `source on` switched off and could not confirm it. Its one error line said only
@@ -976,6 +1006,34 @@ def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confi
     # the cause first, then what switching off ran into, in the one line
     assert re.search(r"no reply to SAR.*could not confirm X-rays off", errors[0]), errors
     assert sum("could not confirm X-rays off" in ln for ln in err) == 1, err
+
+
+def test_a_failed_source_ons_line_says_the_unconfirmed_switch_off_once():
+    """Review s43rr2: a beam not stable (or tripped) whose switch-off was not confirmed (a relay
+    stuck on) ended on one line saying the unconfirmed switch-off twice: "...; switching X-rays off
+    could not be confirmed; switching X-rays off: could not confirm X-rays off after 1 attempt(s)
+    ...". The fault, then the switch-off's outcome, each once (measured with the CLI: 15 s per run at
+    its stable_timeout_s; here the line is composed by its own functions)."""
+    from acquisition.cli import _close_after, _one_fault
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    model = L8121Model(warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="A", stable_timeout_s=0.2, off_confirm_s=0.2, off_attempts=1, poll_s=0.02)
+        src.connect()
+        model.inject_after("XON", lambda: (model.stuck_on(), model.drop_beam()))
+        with pytest.raises(DeviceError) as failed:
+            src.on(60, 250)
+        with pytest.raises(DeviceError) as closing:
+            _close_after(src, failed.value)
+        src.detach()
+        model.stuck_on(False)
+    line = str(_one_fault(closing.value, src))
+    assert line.startswith(f"{server.url}: beam not stable within"), line
+    assert len(re.findall(r"could not be confirmed|could not confirm", line)) == 1, line
+    assert "switch the source off at the controller" in line, line
 
 
 def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, scene_toml, capsys):

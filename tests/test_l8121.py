@@ -3033,6 +3033,33 @@ def test_a_tolerance_is_judged_at_the_setting_before_anything_is_sent(warm, dial
         src.off()
 
 
+class _ReadsOneCountHigh(L8121Model):
+    """A unit whose current meter reads 0.6 µA high: one count of its whole-µA reading at 2 µA."""
+
+    def _measured(self, t):
+        kv, ua = super()._measured(t)
+        return kv, (ua + 0.6 if ua > 0 else ua)
+
+
+@pytest.mark.parametrize("ua", [2, 3])
+def test_a_narrowed_default_tolerance_is_no_finer_than_a_reading(dialect, ua):
+    """Review s43rr2: the default 5 µA narrowed to half the room under the beam-drop bound was
+    0.5 µA at 2 µA and 0.75 µA at 3 µA, finer than the whole µA both dialects read: a unit whose
+    meter read one count high was never stable and was switched off ("beam not stable ... measured
+    3 µA, set 2 µA (tolerance 0.5 µA)"). The narrowed default is at least a reading's step (1 µA)
+    and never past the room (1 - beam_drop_fraction of the setting), so no dropped beam is stable."""
+    model = _ReadsOneCountHigh(dialect=dialect, warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server, driver(server, dialect, stable_timeout_s=0.3) as src:
+        room = (1 - src.config.beam_drop_fraction) * ua
+        assert 1.0 <= src.config.tolerance_ua(ua) <= room
+        reading = src.on(40, ua)
+        assert abs(reading["current_ua"] - ua) == 1  # one count off, judged stable
+        src.off()
+    config = SourceConfig()
+    for set_ua in (0, 1, 2, 3, 4, 8, 9, 10, 250):  # never past the room, whatever the setting
+        assert config.tolerance_ua(set_ua) <= (1 - config.beam_drop_fraction) * set_ua
+
+
 def test_whole_numbers_of_numpy_are_taken_and_stored_as_python_ints():
     import numpy as np
 
