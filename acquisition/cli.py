@@ -924,7 +924,16 @@ def _failed_on(exc, src, args):
     from acquisition.errors import DeviceError
 
     after = _after_failed_on(src, args)
-    err = DeviceError(_cli_terms(str(exc), args.port) + after)
+    text = _cli_terms(str(exc), args.port)
+    done, confirmed = "; X-rays switched off", "; X-rays off, confirmed by STS: "
+    if done in text and after.startswith(confirmed):
+        # the driver's line says it switched off: the confirmation joins those words ("X-rays
+        # switched off, confirmed by STS: STANDBY"), where the line said the switch-off twice
+        text, after = text.replace(done, done + after.removeprefix("; X-rays off"), 1), ""
+        err = DeviceError(text)
+        err.tube_said = True
+        return err
+    err = DeviceError(text + after)
     err.tube_said = bool(after)
     return err
 

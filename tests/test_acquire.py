@@ -1777,3 +1777,29 @@ def test_the_python_api_takes_paths_and_numpy_booleans_in_a_protocol(tmp_path, s
     q = load_protocol(raw)
     assert q.detector.folder == os.fspath(tmp_path) and q.detector.discard_first is True
     assert q.sim.scene == os.fspath(scene)
+
+
+def test_a_failed_source_ons_line_says_a_confirmed_switch_off_once():
+    """Left by review s43rr2: a beam not stable, switched off where it was found and confirmed,
+    ended "...; X-rays switched off; X-rays off, confirmed by STS: STANDBY", the switch-off said
+    twice. Now once, with its confirmation: "X-rays switched off, confirmed by STS: STANDBY"."""
+    from types import SimpleNamespace
+
+    from acquisition.cli import _failed_on
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.errors import DeviceError
+    from acquisition.l8121 import L8121
+
+    model = L8121Model(warmed_up=True, ramp_s=0.05)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="A", stable_timeout_s=0.2, poll_s=0.02)
+        src.connect()
+        model.inject_after("XON", model.drop_beam)
+        with pytest.raises(DeviceError) as failed:
+            src.on(60, 250)
+        err = _failed_on(failed.value, src, SimpleNamespace(port=server.url, action="on", kv=60, ua=250))
+        src.close()
+    line = str(err)
+    assert line.startswith(f"{server.url}: beam not stable within") and not model.xray_on, line
+    assert line.count("X-rays") == 1 and line.endswith("; X-rays switched off, confirmed by STS: STANDBY"), line
+    assert err.tube_said
