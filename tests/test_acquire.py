@@ -931,26 +931,34 @@ def test_cli_source_commands_on_the_emulator(capsys):
         assert "kV" in capsys.readouterr().err and not model.xray_on
 
 
-def test_cli_source_on_says_a_poll_without_reply_once(capsys):
-    """Found (s43): the controller let the SAR poll go unanswered while the beam ramped up; the
-    terminal read "no reply to SAR within 0.3 s" twice, the driver's fail-safe ERROR line and then
-    the command's error line in the same words. The fault is said once, on the error line."""
+def _source_on_without_a_sar_reply(model) -> int:
+    """`source on` at 60 kV 250 µA in dialect A, the first SAR after XON answered after the 0.3 s
+    time-out, with warnings on stderr as logging.basicConfig gives the command: its exit code."""
     import sys
 
-    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.emulators.l8121 import PtyServer
 
-    model = L8121Model(warmed_up=True, ramp_s=0.1)
     root = logging.getLogger()
-    console = logging.StreamHandler(sys.stderr)  # what logging.basicConfig gives the command
+    console = logging.StreamHandler(sys.stderr)
     console.setLevel(logging.WARNING)
     root.addHandler(console)
     try:
         with PtyServer(model) as server:
-            model.inject_after("XON", lambda: model.hold_once("SAR"))  # its reply comes after the time-out
+            model.inject_after("XON", lambda: model.hold_once("SAR"))
             port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
-            code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+            return _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
     finally:
         root.removeHandler(console)
+
+
+def test_cli_source_on_says_a_poll_without_reply_once(capsys):
+    """Found (s43): the controller let the SAR poll go unanswered while the beam ramped up; the
+    terminal read "no reply to SAR within 0.3 s" twice, the driver's fail-safe ERROR line and then
+    the command's error line in the same words. The fault is said once, on the error line."""
+    from acquisition.emulators.l8121 import L8121Model
+
+    model = L8121Model(warmed_up=True, ramp_s=0.1)
+    code = _source_on_without_a_sar_reply(model)
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert code == 1 and not model.xray_on, err
     assert [ln for ln in err if "no reply to SAR" in ln] == [err[-1]], err
@@ -964,23 +972,12 @@ def test_cli_source_on_says_a_poll_without_reply_when_a_ctrl_c_cuts_its_switch_o
     terminal read only "stopped by SIGINT; tube off", never why the beam went off. Said once."""
     import os
     import signal
-    import sys
 
-    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.emulators.l8121 import L8121Model
 
     model = L8121Model(warmed_up=True, ramp_s=0.1)
-    root = logging.getLogger()
-    console = logging.StreamHandler(sys.stderr)  # what logging.basicConfig gives the command
-    console.setLevel(logging.WARNING)
-    root.addHandler(console)
-    try:
-        with PtyServer(model) as server:
-            model.inject_after("XON", lambda: model.hold_once("SAR"))  # its reply comes after the time-out
-            model.inject_after("XOF", lambda: os.kill(os.getpid(), signal.SIGINT))  # the fail-safe's XOF
-            port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
-            code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
-    finally:
-        root.removeHandler(console)
+    model.inject_after("XOF", lambda: os.kill(os.getpid(), signal.SIGINT))  # the fail-safe's XOF
+    code = _source_on_without_a_sar_reply(model)
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert code == 130 and not model.xray_on, err
     assert sum("no reply to SAR" in ln for ln in err) == 1, err
