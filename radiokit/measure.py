@@ -1114,11 +1114,6 @@ def _detect_inclusion(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> np.nd
     return _detect_blobs(img, body, pixel_size_mm)[0]
 
 
-#: LoG peaks kept a scale and sign: the inclusion is the best of the strongest three, the others are
-#: neighbours for the background ROI to keep clear of (a phantom with several inclusions or bubbles)
-_NEIGHBOUR_PEAKS = 16
-
-
 def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.ndarray, _Neighbours]:
     """The strongest compact blob inside the body, brighter or darker than its surroundings, as a
     boolean mask (its half-maximum extent), and the other blobs that stand out as it must
@@ -1136,8 +1131,8 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     where the body's shape is smooth.
 
     The inclusion is the best of the three strongest candidates a scale and sign. The others are
-    the candidates of either sign (sixteen a scale: with three, a fourth blob of a neighbour's
-    scale was never seen) that pass the same test, less
+    the candidates of either sign (every peak of every scale: with three a scale, a fourth blob of a
+    neighbour's scale was never seen; with sixteen, a seventeenth) that pass the same test, less
     the chosen blob seen again at another scale (its centre in the chosen one's extent, or the
     chosen one's centre within its radius: at coarse scales a blob merges with its neighbours),
     each structure once, at the scale of its strongest response (the scale-normalised LoG peaks
@@ -1215,12 +1210,15 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
 
 
 def _log_peaks(resp: np.ndarray, min_distance: int) -> np.ndarray:
-    """The ``_NEIGHBOUR_PEAKS`` strongest local maxima of a scale's LoG response, strongest first."""
+    """Every local maximum of a scale's LoG response above zero, strongest first.
+
+    Why every one: they are the neighbours a background ROI keeps clear of, and any count cap
+    over the whole body can be filled elsewhere (the 16 strongest of a phantom with 120 air
+    bubbles lay away from the inclusion, and the background ROI sat on the bubbles beside it).
+    Only the few a ROI comes near are ever fitted (:meth:`_Neighbours.near`)."""
     from skimage.feature import peak_local_max
 
-    return peak_local_max(
-        resp, min_distance=min_distance, threshold_abs=0.0, num_peaks=_NEIGHBOUR_PEAKS, exclude_border=False
-    )
+    return peak_local_max(resp, min_distance=min_distance, threshold_abs=0.0, exclude_border=False)
 
 
 def _half_maximum(fit, radius: float, shape) -> np.ndarray:
@@ -1277,6 +1275,9 @@ class _Neighbours:
             if stood_out:
                 self._stands[len(self._cands)] = True
             self._cands.append(((pr, pc), r_c, sign))
+        # (row, col, radius) of each candidate: near() and _structure() look through thousands of
+        # peaks (every one of every scale) for the few within reach
+        self._at = np.array([(pr, pc, r_c) for (pr, pc), r_c, _ in self._cands], float).reshape(-1, 3)
 
     def _clear_body(self) -> np.ndarray:
         """The body less the chosen blob (1.5 of its radii): a neighbour's surroundings without it."""
@@ -1333,10 +1334,9 @@ class _Neighbours:
         """Whether candidate ``i`` stands out and is no structure found at a stronger scale."""
         if i not in self._kept:
             (pr, pc), _, _ = self._cands[i]
-            self._kept[i] = self._stands_out(i) and not any(
-                np.hypot(pr - r, pc - c) <= r_j and self._structure(j)
-                for j, ((r, c), r_j, _) in enumerate(self._cands[:i])
-            )
+            r, c, r_j = self._at[:i].T
+            inside = np.flatnonzero(np.hypot(pr - r, pc - c) <= r_j)
+            self._kept[i] = self._stands_out(i) and not any(self._structure(int(j)) for j in inside)
         return self._kept[i]
 
     def near(self, roi: ROI) -> list:
@@ -1344,12 +1344,13 @@ class _Neighbours:
         where the LoG's radius ends, still adds to the line integral), or, for one known to stand
         out, its extent (:meth:`_extent_overlaps`; at most 1.2 x 1.5 of four times its radius)."""
         out = []
-        for i, ((r, c), r_c, _) in enumerate(self._cands):
-            nearest = np.clip(r, roi.row0, roi.row1 - 1), np.clip(c, roi.col0, roi.col1 - 1)
-            d = np.hypot(nearest[0] - r, nearest[1] - c)
+        rows, cols, radii = self._at.T
+        dist = np.hypot(np.clip(rows, roi.row0, roi.row1 - 1) - rows, np.clip(cols, roi.col0, roi.col1 - 1) - cols)
+        for i in np.flatnonzero(dist < 7.2 * radii):  # the strongest first, as _cands
+            i, d, ((r, c), r_c, _) = int(i), dist[i], self._cands[i]
             if d < 1.2 * r_c and self._structure(i):
                 out.append((r, c))
-            elif d < 7.2 * r_c and self._stands.get(i) and self._structure(i) and self._extent_overlaps(i, roi):
+            elif self._stands.get(i) and self._structure(i) and self._extent_overlaps(i, roi):
                 out.append((r, c))
         return out
 

@@ -611,6 +611,25 @@ def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_several():
     assert np.hypot(rows - 96, cols - 82).min() > 4  # not on the weak sphere at all
 
 
+def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_many():
+    """Review s43bub: detection kept the 16 strongest LoG peaks a scale and sign over the whole
+    body, so with more stronger blobs of a neighbour's scale elsewhere (a phantom of many air
+    bubbles) the weak one beside the inclusion was never seen and the background ROI was placed
+    on it, silently. The background must read the clean body, 0.5, within the noise of its mean."""
+    rr, cc = np.mgrid[:256, :256]
+    disc = 0.5 / (1 + np.exp((np.hypot(rr - 127.5, cc - 127.5) - 118) / 3.0))
+    weak = ((128, 114), 4, 0.08)  # where the default (left) background ROI lies
+    far = [((r, c), 4, 0.2) for r in (64, 84, 172, 192) for c in range(80, 200, 24)]  # 20, all stronger
+    truth = _with_spheres(disc, [((128, 139), 10, 0.3), weak, *far], noise=0.0)
+    img = -np.log(np.random.default_rng(8).poisson(16500 * np.exp(-truth)) / 16500)
+    inc, bg = find_rois(img, pixel_size_mm=0.4)
+    assert inc.contains((128, 139))
+    n = bg.shape[0] * bg.shape[1]
+    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
+    rows, cols = np.mgrid[bg.slices]
+    assert np.hypot(rows - 128, cols - 114).min() > 4  # not on the weak sphere at all
+
+
 @pytest.mark.parametrize(
     "centre, semi_axes",
     [((120, 89), (40, 40)), ((120, 103), (6, 30))],
