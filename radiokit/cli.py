@@ -368,9 +368,9 @@ def _progress(args) -> bool:
 def _judge_files(darks, flats, hints) -> None:
     """Open every dark and flat file and judge it from its header (frames in it, one frame shape
     per list), before any frame is read: every bad file named, each on its own line
-    (:func:`radiokit.io.open_all`), each closed before the next opens. :func:`_stack` reads them
+    (:func:`radiokit.io.judge_all`), each closed before the next opens. :func:`_stack` reads them
     afterwards, one at a time."""
-    from radiokit.io import FormatError, InputErrors, open_all
+    from radiokit.io import FormatError, InputErrors, judge_all
 
     errors = []
     for paths in (darks, flats):
@@ -382,11 +382,10 @@ def _judge_files(darks, flats, hints) -> None:
             shapes.append((src.path, src.frame_shape))
 
         found = []
-        for path in paths:  # one file open at a time: 300 darks held open passed macOS's 256 files
-            try:
-                open_all([path], check=judge, **hints)[0].close()
-            except (FormatError, ValueError, OSError) as exc:
-                found.append(exc)
+        try:  # one file open at a time: 300 darks held open passed macOS's 256 files
+            judge_all(paths, check=judge, **hints)
+        except (FormatError, ValueError, OSError) as exc:
+            found = list(getattr(exc, "errors", [exc]))
         found = _in_given_order(found + _odd_shapes(shapes), paths)
         # one file of darks and flats both (an experiment-style file) is named once
         errors += [e for e in found if str(e) not in map(str, errors)]

@@ -828,17 +828,17 @@ def _planned(segments):
             yield si, fi, step, (1.0 if factors is None else float(factors[j]))
 
 
-def _open_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, list]:
-    """The sources of ``inputs`` opened and, per source, ``(index, frames, steps, exposure
-    factors)`` of the frames to correct: every frame of a file without image keys as a range, not
-    a list -- a 14 kB HDF5 file declaring 10**8 frames made a list of 10**8 tuples (GBs) before the
-    output's size could be refused. Keyed files' records fit the memory budget. Every file is
-    judged from its header before any frame is read, every bad one named
-    (:func:`radiokit.io.open_all`)."""
+def _judge_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, list]:
+    """Per source of ``inputs``, ``(index, frames, steps, exposure factors)`` of the frames to
+    correct, and ``(frames, frame shape, dtype, image keys)`` of its header as judged: every frame
+    of a file without image keys as a range, not a list -- a 14 kB HDF5 file declaring 10**8
+    frames made a list of 10**8 tuples (GBs) before the output's size could be refused. Keyed
+    files' records fit the memory budget. Every file is judged from its header before any frame
+    is read, every bad one named, one file open at a time (:func:`radiokit.io.judge_all`)."""
     from radiokit.calibrate import check_layout, exposure_factors
-    from radiokit.io import open_all
+    from radiokit.io import judge_all
 
-    segments = []
+    segments, headers = [], []
     stated: dict = {}  # the first frame file's own sub-array, where the calibration states none
 
     def judge(src):
@@ -851,6 +851,7 @@ def _open_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, l
         keys = src.meta.get("image_key")
         steps = src.meta.get("step")
         si = len(segments)  # the source's index once every file is good (else nothing is kept)
+        headers.append((len(src), src.frame_shape, np.dtype(src.dtype), None if keys is None else np.asarray(keys)))
         if keys is None:
             segments.append((si, range(len(src)), steps, None))
             return
@@ -858,7 +859,45 @@ def _open_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, l
         factors = exposure_factors(cal, src.meta, src.path, picked)  # 1 unless both currents are recorded
         segments.append((si, picked, steps, factors))
 
-    return open_all(inputs, check=judge, **hints), segments
+    judge_all(inputs, check=judge, **hints)
+    return segments, headers
+
+
+class _OneOpen:
+    """The sources of ``paths`` opened again one at a time, as the frames to correct reach them
+    (:func:`_planned` goes through them in order): each is closed before the next opens. Why:
+    held open together, 300 single-frame TIFFs passed macOS's default limit of 256 open files.
+    A file that no longer has the header it was judged by is refused, not read."""
+
+    def __init__(self, paths, headers, hints):
+        self._paths, self._headers, self._hints = paths, headers, hints
+        self._index, self._src = None, None
+
+    def __getitem__(self, si):
+        from radiokit.io import open_frames
+
+        if si != self._index:
+            self.close()
+            src = open_frames(self._paths[si], **self._hints)
+            if not self._as_judged(src, *self._headers[si]):
+                src.close()
+                raise FormatError(src.path, "changed while being corrected: its header is not the one checked")
+            self._index, self._src = si, src
+        return self._src
+
+    @staticmethod
+    def _as_judged(src, n, shape, dtype, keys) -> bool:
+        """Whether ``src`` holds the frames judged: more frames appended since (an acquisition
+        still writing) leave those judged as they were."""
+        now = src.meta.get("image_key")
+        if len(src) < n or src.frame_shape != shape or np.dtype(src.dtype) != dtype or (now is None) != (keys is None):
+            return False
+        return keys is None or np.array_equal(np.asarray(now)[:n], keys)
+
+    def close(self):
+        if self._src is not None:
+            self._src.close()
+        self._index, self._src = None, None
 
 
 def _check_type_reaches_flats(src, cal: Calibration) -> None:
@@ -883,11 +922,11 @@ def _check_type_reaches_flats(src, cal: Calibration) -> None:
 _KINDS = {0: "projection", 1: "flat", 2: "dark", 3: "invalid frame"}
 
 
-def _nothing_to_correct(sources, image_keys) -> str:
+def _nothing_to_correct(headers, image_keys) -> str:
     """What the files hold instead of the frames asked for: "(image_keys=(0,))" named no kind,
     and a calibration file given as the frames (its dark and flat) read as an empty stack."""
     wanted = " or ".join(f"{_KINDS.get(int(k), 'frame')} (image_key {int(k)})" for k in image_keys)
-    held = sorted({int(k) for src in sources for k in np.asarray(src.meta.get("image_key", []))})
+    held = sorted({int(k) for *_, keys in headers for k in ([] if keys is None else keys)})
     kinds = ", ".join(f"{_KINDS.get(k, f'image_key {k}')}s" for k in held)
     return f"no {wanted} to correct" + (f"; only {kinds}" if kinds else "")
 
@@ -914,11 +953,12 @@ def correct_files(
     # the calibration's shape is the panel's: a raw size fitting several presets (one 2240 x 2240
     # frame is four 2x2-binned ones) is read at it, where it was refused as ambiguous
     hints = {"panel_shape": cal.shape, **hints}
-    sources, segments = _open_segments(inputs, cal, image_keys, hints)
+    segments, headers = _judge_segments(inputs, cal, image_keys, hints)
+    n_plan = sum(len(picked) for _, picked, _, _ in segments)
+    if not n_plan:
+        raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(headers, image_keys)}")
+    sources = _OneOpen(inputs, headers, hints)
     try:
-        n_plan = sum(len(picked) for _, picked, _, _ in segments)
-        if not n_plan:
-            raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(sources, image_keys)}")
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
         sat_total = np_total = over_total = 0
@@ -955,8 +995,7 @@ def correct_files(
         elapsed = time.perf_counter() - t0
         warn_above_top(cal, over_total, n_plan)
     finally:
-        for src in sources:
-            src.close()
+        sources.close()
     return {
         "frames": n_plan,
         "output": str(output),

@@ -1193,3 +1193,31 @@ def test_calibrate_judges_more_files_than_may_be_open_at_once(tmp_path):
     finally:
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
     assert res.returncode == 0, res.stderr
+
+
+def test_correct_reads_more_files_than_may_be_open_at_once(tmp_path):
+    """`correct` judged every frame file's header, then corrected, holding all the files open:
+    300 single-frame TIFFs under macOS's default limit of 256 open files failed "Too many open
+    files", one line each, and nothing could be corrected. Headers are judged one file at a time
+    and each file is open only while its frames are read; every frame lands, in order, at its
+    transmission: -ln((raw - dark) / (flat - dark))."""
+    resource = pytest.importorskip("resource")
+    if not os.path.isdir("/proc/self/fd"):
+        pytest.skip("counts open files in /proc")
+    shape, n = (8, 8), 100
+    Calibration(np.full(shape, 100.0), np.full(shape, 3100.0), np.zeros(shape, np.uint32)).save(tmp_path / "cal.h5")
+    frames = [tmp_path / f"p{i:03d}.tif" for i in range(n)]
+    raw = 700 + 15 * np.arange(n)  # transmission 0.2 + 0.005 i
+    for p, level in zip(frames, raw):
+        tifffile.imwrite(p, np.full(shape, level, np.uint16))
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (len(os.listdir("/proc/self/fd")) + 24, hard))
+    try:
+        res = run_cli("correct", *frames, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert res.returncode == 0, res.stderr
+    out = read(tmp_path / "out.h5").data
+    assert out.shape == (n, *shape)
+    expected = -np.log((raw - 100) / 3000.0)
+    np.testing.assert_allclose(out, np.broadcast_to(expected[:, None, None], out.shape), rtol=0, atol=1e-6)

@@ -864,3 +864,37 @@ def test_a_beam_off_frame_with_hot_pixels_is_no_open_field_while_a_slit_is(hot_s
     slit = (100 + rng.poisson(2000 * t) + rng.normal(0, 3, (n, n))).round().astype(np.uint16)
     out = correct_frames(cal, slit, domain="linear")
     assert abs(float(np.median(out[:, 101:103])) - 0.5) < 0.02  # Poisson: 1000 counts, 3 % per pixel
+
+
+@pytest.mark.parametrize("grown", [False, True])
+def test_correct_files_refuses_a_file_changed_after_its_header_was_checked(tmp_path, monkeypatch, grown):
+    """`correct` judges every file's header one file at a time, then opens each again to read its
+    frames (held open together, 300 files passed macOS's 256 open files). A file rewritten in
+    between at another frame size is named, nothing written; one with frames appended since (an
+    acquisition still writing) has the frames judged corrected, as when every file was held open."""
+    import radiokit.correct as rc
+    from radiokit.errors import FormatError
+    from radiokit.io import read
+
+    shape = (8, 8)
+    cal = Calibration(np.full(shape, 100.0), np.full(shape, 3100.0), np.zeros(shape, np.uint32))
+    a, b = tmp_path / "a.tif", tmp_path / "b.tif"
+    tifffile.imwrite(a, np.full(shape, 1600, np.uint16))
+    tifffile.imwrite(b, np.full(shape, 850, np.uint16))
+    real = rc._correct_planned
+
+    def rewrite_b_after_a(cal_, src, *args):
+        if str(src.path) == str(a):
+            tifffile.imwrite(b, np.full((2, *shape) if grown else (8, 9), 850, np.uint16))
+        return real(cal_, src, *args)
+
+    monkeypatch.setattr(rc, "_correct_planned", rewrite_b_after_a)
+    if not grown:
+        with pytest.raises(FormatError, match=f"^{b}: changed while being corrected"):
+            rc.correct_files([a, b], cal, tmp_path / "out.h5", progress=False)
+        assert not (tmp_path / "out.h5").exists()
+        return
+    rc.correct_files([a, b], cal, tmp_path / "out.h5", progress=False)
+    out = read(tmp_path / "out.h5").data  # transmissions 0.5 and 0.25: -ln t
+    np.testing.assert_allclose(out[:, 0, 0], [np.log(2), np.log(4)], rtol=1e-6)
+    assert out.shape == (2, *shape) and len(read(b).data) == 2  # b grew, and its first frame was read
