@@ -573,6 +573,15 @@ def _with_spheres(body, spheres, noise=0.01, seed=7):
     return img + np.random.default_rng(seed).normal(0, noise, img.shape)
 
 
+def _assert_clean_background(img, bg, clear_of, radius):
+    """The background ROI reads the clean body, 0.5, within 5 standard errors of its mean (noise
+    about 0.01 in L a pixel), and lies wholly outside ``radius`` of ``clear_of``."""
+    n = bg.shape[0] * bg.shape[1]
+    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
+    rows, cols = np.mgrid[bg.slices]
+    assert np.hypot(rows - clear_of[0], cols - clear_of[1]).min() > radius
+
+
 @pytest.mark.parametrize("peak", [0.2, -0.2])
 def test_find_rois_keeps_the_background_off_a_second_inclusion(peak):
     """Review s41proc: a second, smaller sphere (denser or less dense) 38 px left of the
@@ -584,10 +593,7 @@ def test_find_rois_keeps_the_background_off_a_second_inclusion(peak):
     img = _with_spheres(disc, [((128, 150), 20, 0.3), ((128, 112), 8, peak)])
     inc, bg = find_rois(img, pixel_size_mm=0.1)
     assert inc.contains((128, 150))
-    n = bg.shape[0] * bg.shape[1]
-    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
-    rows, cols = np.mgrid[bg.slices]
-    assert np.hypot(rows - 128, cols - 112).min() > 8  # not on the second sphere at all
+    _assert_clean_background(img, bg, clear_of=(128, 112), radius=8)  # not on the second sphere at all
 
 
 def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_several():
@@ -605,10 +611,7 @@ def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_several():
     img = -np.log(counts / 16500)
     inc, bg = find_rois(img, pixel_size_mm=0.4)
     assert inc.contains((96, 107))
-    n = bg.shape[0] * bg.shape[1]
-    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
-    rows, cols = np.mgrid[bg.slices]
-    assert np.hypot(rows - 96, cols - 82).min() > 4  # not on the weak sphere at all
+    _assert_clean_background(img, bg, clear_of=(96, 82), radius=4)  # not on the weak sphere at all
 
 
 def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_many():
@@ -624,10 +627,7 @@ def test_find_rois_keeps_the_background_off_a_weak_neighbour_among_many():
     img = -np.log(np.random.default_rng(8).poisson(16500 * np.exp(-truth)) / 16500)
     inc, bg = find_rois(img, pixel_size_mm=0.4)
     assert inc.contains((128, 139))
-    n = bg.shape[0] * bg.shape[1]
-    assert img[bg.slices].mean() == pytest.approx(0.5, abs=5 * 0.01 / math.sqrt(n))
-    rows, cols = np.mgrid[bg.slices]
-    assert np.hypot(rows - 128, cols - 114).min() > 4  # not on the weak sphere at all
+    _assert_clean_background(img, bg, clear_of=(128, 114), radius=4)  # not on the weak sphere at all
 
 
 @pytest.mark.parametrize(
