@@ -23,7 +23,7 @@ class InputErrors(RadiokitError, ValueError):
 
     Why: a command given several files named only the first bad one and stopped, and the user
     met the next one only after fixing it. Inputs that are cheap to judge (their headers) are
-    judged all first (:func:`radiokit.io.open_all`), and every bad one is named at once."""
+    judged all first (:func:`radiokit.io.judge_all`), and every bad one is named at once."""
 
     def __init__(self, errors):
         self.errors = list(errors)

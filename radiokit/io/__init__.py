@@ -44,7 +44,7 @@ from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
 from radiokit.io._results import EnhancedImages, ResultsRecord, read_results, write_results
 from radiokit.io._simulation import PlantedDefects, SimulationRecord, read_simulation, write_simulation
-from radiokit.io._source import FORMATS, FrameSource, iter_frames, judge_all, open_all, open_frames, read, sniff
+from radiokit.io._source import FORMATS, FrameSource, iter_frames, judge_all, open_frames, read, sniff
 from radiokit.io._write import StackRecord, StackWriter, read_stack, write_tiff
 
 __all__ = [
@@ -53,7 +53,6 @@ __all__ = [
     "data_files",
     "read",
     "open_frames",
-    "open_all",
     "judge_all",
     "iter_frames",
     "sniff",

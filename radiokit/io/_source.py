@@ -1799,54 +1799,24 @@ def open_frames(path, /, **hints) -> FrameSource:
     return FrameSource(path, **hints)
 
 
-def open_all(paths, /, check=None, **hints) -> list[FrameSource]:
-    """Open every file of ``paths`` (``hints`` as :func:`open_frames` takes them) and pass each
-    open source to ``check`` (a caller's judgement of one file from its header: its shape, its
-    frame count), before any frame is read. Every file that fails is named: one failure raises
-    its own error, several an :class:`radiokit.errors.InputErrors` holding each, in the order
-    given; the files opened are then closed. Why: a command of several files named only the first
-    bad one, and the user met the next one only after fixing it."""
-    sources, errors = [], []
-    try:
-        for path in paths:
-            try:
-                src = open_frames(path, **hints)
-            except (RadiokitError, ValueError, OSError) as exc:
-                errors.append(exc)
-                continue
-            sources.append(src)
-            if check is not None:
-                try:
-                    check(src)
-                except (RadiokitError, ValueError, OSError) as exc:
-                    errors.append(exc)
-    except BaseException:
-        _close_all(sources)
-        raise
-    if errors:
-        _close_all(sources)
-        raise errors[0] if len(errors) == 1 else InputErrors(errors)
-    return sources
-
-
 def judge_all(paths, /, check, **hints) -> None:
-    """Judge every file of ``paths`` as :func:`open_all` does, naming every bad one in one pass,
-    each file closed before the next opens; the caller opens a file again to read its frames.
-    Why: held open together, 300 single-frame TIFFs passed macOS's default limit of 256 open
-    files, and every file after the 250th was named "Too many open files"."""
+    """Open every file of ``paths`` (``hints`` as :func:`open_frames` takes them) and pass each open
+    source to ``check`` (a caller's judgement of one file from its header: its shape, its frame
+    count), before any frame is read; each file is closed before the next opens, and the caller
+    opens a file again to read its frames. Every file that fails is named: one failure raises its
+    own error, several an :class:`radiokit.errors.InputErrors` holding each, in the order given.
+    Why: a command of several files named only the first bad one, and the user met the next one
+    only after fixing it; and held open together, 300 single-frame TIFFs passed macOS's default
+    limit of 256 open files, every file after the 250th named "Too many open files"."""
     errors = []
     for path in paths:
         try:
-            open_all([path], check=check, **hints)[0].close()
+            with open_frames(path, **hints) as src:
+                check(src)
         except (RadiokitError, ValueError, OSError) as exc:
             errors.append(exc)
     if errors:
         raise errors[0] if len(errors) == 1 else InputErrors(errors)
-
-
-def _close_all(sources) -> None:
-    for src in sources:
-        src.close()
 
 
 def _bits_reversed(frame: np.ndarray) -> np.ndarray:
