@@ -454,16 +454,15 @@ def observability(
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
     flat = flat_common(f, moving) if moving is not None else None
     conf, bound = _confidence(info, bound_scale, flat)
+    pinned_conf = None
     if pinned:
-        near = _pinned_info(lmin_near[0], spacing, highpass, sig2) / (2 * (sig2 + floor2))
-        pinned, _ = _confidence(np.minimum(info, near), bound_scale, flat)
-    else:
-        pinned = None
+        info_near = _pinned_info(lmin_near[0], near, spacing, highpass, sig2) / (2 * (sig2 + floor2))
+        pinned_conf, _ = _confidence(np.minimum(info, info_near), bound_scale, flat)
     obj = _object(f, float(np.median(sig_map)))
     if mask is not None:
         obj &= np.asarray(mask, bool)
     sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf, bound, sigma, obj, pinned)
+    return Observability(conf, bound, sigma, obj, pinned_conf)
 
 
 def _confidence(info, bound_scale, flat=None):
@@ -476,14 +475,13 @@ def _confidence(info, bound_scale, flat=None):
     return conf.astype(np.float32), bound.astype(np.float32)
 
 
-def _pinned_info(lmin_near, spacing, highpass, sig2):
+def _pinned_info(lmin_near, near, spacing, highpass, sig2):
     """The information (times ``2 sigma^2``) a window of the map's area would hold at the
     density found within :data:`PINNED_REACH` spacings of each pixel: ``lmin_near`` the
-    :func:`_lmin` of the window's Gaussian shrunk to cut at that reach (sigma ``PINNED_REACH x
+    :func:`_lmin` of the window's Gaussian shrunk to cut at that reach (sigma ``near``, ``PINNED_REACH x
     spacing / WINDOW_REACH``), less its own noise floor, scaled up to the map window's area. A
     uniform texture reads as in the full window; a pixel with no structure within the reach
     reads none, however strong an edge the full window holds."""
-    near = PINNED_REACH * spacing / WINDOW_REACH
     lmin = np.maximum(lmin_near - _noise_lmin(spacing, highpass, window=near) * sig2, 0)
     return _window_area(spacing) * lmin
 
