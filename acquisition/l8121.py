@@ -259,7 +259,7 @@ class SourceConfig:
     ua_min: float = 0.0
     ua_max: float = RATINGS.ua_max
     watts_max: float = RATINGS.watts_max
-    kv_tolerance: float | str = 1.0  # the two as _TOLERANCE_DEFAULTS
+    kv_tolerance: float | str = 1.0
     ua_tolerance: float | str = 5.0
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float | None = None
@@ -566,7 +566,9 @@ def _focus_modes(modes) -> tuple:
 
 #: the tolerances a configuration has when none is written (:meth:`SourceConfig.tolerance_ua`
 #: narrows them at a low setting; a value equal to one is taken as not written)
-_TOLERANCE_DEFAULTS = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
+_TOLERANCE_DEFAULTS = {
+    f.name: f.default for f in dataclasses.fields(SourceConfig) if f.name in ("kv_tolerance", "ua_tolerance")
+}
 #: a fault's note when its switch-off was not confirmed (the command line, which then says the
 #: switch-off's own error after the fault, drops it: the same fact twice in one line)
 OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"
