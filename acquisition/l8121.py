@@ -235,7 +235,8 @@ class SourceConfig:
 
     ``kv_min``, ``kv_max``, ``ua_min``, ``ua_max`` and ``watts_max`` may only tighten
     :data:`RATINGS`; a value that would widen them is refused. Tolerances are absolute (kV, µA)
-    when numbers, relative to the set value when strings such as ``"2%"``. ``model`` is what
+    when numbers, relative to the set value when strings such as ``"2%"``; None (the default) is
+    the driver's, 1 kV and 5 µA, narrowed at a low setting (:meth:`tolerance_ua`). ``model`` is what
     dialect A's ``TYP`` must answer at connect; ``None`` (or ``""`` in TOML, which has no null)
     accepts any model. Dialect B has no identity query.
 
@@ -259,8 +260,10 @@ class SourceConfig:
     ua_min: float = 0.0
     ua_max: float = RATINGS.ua_max
     watts_max: float = RATINGS.watts_max
-    kv_tolerance: float | str = 1.0
-    ua_tolerance: float | str = 5.0
+    # None: the driver's (_DEFAULT_TOLERANCES), narrowed at a low setting; a value written is the
+    # user's, judged as given (a default equal to a written 5 was taken as unwritten, and narrowed)
+    kv_tolerance: float | str | None = None
+    ua_tolerance: float | str | None = None
     focus_modes: tuple[int, ...] = (0, 1, 2, 3)
     timeout_s: float | None = None
     # the probe's reply time-out at every baud rate; None: the longest dialect's (B's 2 s), so a
@@ -367,7 +370,7 @@ class SourceConfig:
         :meth:`L8121.set_values`; a protocol at its own, ``_check_source``), a default narrowed
         there where it is too wide: judged here at ``kv_min``, 25 kV was refused for a unit run at
         60 kV (s43)."""
-        given = [key for key, default in _TOLERANCE_DEFAULTS.items() if getattr(self, key) != default]
+        given = [key for key in _DEFAULT_TOLERANCES if getattr(self, key) is not None]
         ua_hi = min(self.ua_max, RATINGS.ua_max)
         self.check_tolerances(min(self.kv_max, RATINGS.kv_max), ua_hi if ua_hi > 0 else None, keys=given)
 
@@ -472,10 +475,12 @@ class SourceConfig:
                     f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
 
-    def _tolerance_at(self, key: str, spec: float | str, set_value: float) -> float:
-        tol = _tolerance(spec, set_value, key)
+    def _tolerance_at(self, key: str, spec: float | str | None, set_value: float) -> float:
+        if spec is not None:
+            return _tolerance(spec, set_value, key)
+        tol = _DEFAULT_TOLERANCES[key]
         room = (1 - self.beam_drop_fraction) * abs(set_value)
-        if spec == _TOLERANCE_DEFAULTS[key] and tol > room:
+        if tol > room:
             # the default 5 µA is wider than the monitor's drop bound under 10 µA; refusing it left
             # `source on --ua 8` no way through (the command takes no tolerance), so a tolerance
             # nobody wrote is narrowed to half that room: a stable beam stays apart from a dropped
@@ -564,11 +569,9 @@ def _focus_modes(modes) -> tuple:
     return tuple(int(m) for m in modes)  # a numpy integer is not TOML's
 
 
-#: the tolerances a configuration has when none is written (:meth:`SourceConfig.tolerance_ua`
-#: narrows them at a low setting; a value equal to one is taken as not written)
-_TOLERANCE_DEFAULTS = {
-    f.name: f.default for f in dataclasses.fields(SourceConfig) if f.name in ("kv_tolerance", "ua_tolerance")
-}
+#: the tolerances a configuration has when none is written (None; :meth:`SourceConfig.tolerance_ua`
+#: narrows them at a low setting)
+_DEFAULT_TOLERANCES = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
 #: a fault's note when its switch-off was not confirmed (the command line, which then says the
 #: switch-off's own error after the fault, drops it: the same fact twice in one line)
 OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"

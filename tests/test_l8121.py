@@ -3020,7 +3020,10 @@ def test_a_tolerance_is_judged_at_the_setting_before_anything_is_sent(warm, dial
         src.config.ua_tolerance = 6
         with pytest.raises(ValueError, match=r"ua_tolerance = 6: 6 µA at 8 µA.*at most 50% .*4 µA"):
             src.on(40, 8)
-        src.config.ua_tolerance = 5.0  # the default: narrowed at 8 µA, not refused
+        src.config.ua_tolerance = 5.0  # written, the user's: judged as given, though the default's value
+        with pytest.raises(ValueError, match=r"ua_tolerance = 5.0: 5 µA at 8 µA"):
+            src.on(40, 8)
+        src.config.ua_tolerance = None  # the default: narrowed at 8 µA, not refused
         assert src.config.tolerance_ua(8) == 2.0 and src.config.tolerance_ua(250) == 5.0
         src.config.kv_tolerance = 25
         with pytest.raises(ValueError, match=r"kv_tolerance = 25: 25 kV at 40 kV.*at most 50% .*20 kV"):

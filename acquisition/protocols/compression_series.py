@@ -399,7 +399,7 @@ def _limit_type_error(kind: str, value) -> str:
             return "expected a number"
         if value < 0:
             return "expected a finite number >= 0"
-    if kind == "float | str" and not (is_number(value) or isinstance(value, str)):
+    if kind in ("float | str", "float | str | None") and not (is_number(value) or isinstance(value, str)):
         return 'expected a number, or a percentage such as "2%"'
     if kind == "bool" and not isinstance(value, (bool, np.bool_)):
         return "expected true or false"
