@@ -725,11 +725,16 @@ def _poisson_slab_pair(wedge, seed, size=200, frames=4):
     intensity change, no structure) from Poisson counts of a 3000-count beam, each the mean of
     ``frames`` frames, as process() corrects a step; ``wedge`` adds a thickness ramp across the
     columns, so the noise varies with the level (by 3x at a wedge of 2.3)."""
-    rng = np.random.default_rng(seed)
     ramp = np.tile(np.linspace(0.0, 1.0, size), (size, 1))
+    return poisson_line_integrals(np.random.default_rng(seed), (2.0, 2.25), wedge * ramp, frames)
+
+
+def poisson_line_integrals(rng, slabs, structure, frames):
+    """Per slab line integral of ``slabs``, the image ``slab + structure`` as process() corrects a
+    step: -ln of the mean of ``frames`` Poisson frames of a 3000-count beam over 3000 (float32)."""
     out = []
-    for mu_t in (2.0, 2.25):
-        counts = 3000.0 * np.exp(-(mu_t + wedge * ramp))
+    for mu_t in slabs:
+        counts = 3000.0 * np.exp(-(mu_t + structure))
         mean = np.mean([rng.poisson(counts) for _ in range(frames)], axis=0)
         out.append((-np.log(mean / 3000.0)).astype(np.float32))
     return out

@@ -21,6 +21,7 @@ from scipy import ndimage
 from radiokit.pipeline import ROI_MIN_OBSERVED
 from radiokit.register import _confidence as C
 from radiokit.register import register, roi_observed
+from tests.test_register import poisson_line_integrals
 
 INCLUSION = (85, 115, 85, 115)  # 9-30 px inside the disc's edge
 BACKGROUND = (85, 115, 20, 50)  # 20-50 px outside it
@@ -29,15 +30,9 @@ BACKGROUND = (85, 115, 20, 50)  # 20-50 px outside it
 def _slab_with_disc(seed, size=200, radius=30.0, step=0.39, frames=4):
     """The review's pair: line integrals of a slab thinned by an eighth (no motion), a disc
     ``step`` denser, each the mean of ``frames`` Poisson frames of a 3000-count beam."""
-    rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:size, 0:size].astype(float)
     disc = np.hypot(yy - (size - 1) / 2, xx - (size - 1) / 2) <= radius
-    out = []
-    for mu_t in (2.25, 2.0):
-        counts = 3000.0 * np.exp(-(mu_t + step * disc))
-        mean = np.mean([rng.poisson(counts) for _ in range(frames)], axis=0)
-        out.append((-np.log(mean / 3000.0)).astype(np.float32))
-    return out
+    return poisson_line_integrals(np.random.default_rng(seed), (2.25, 2.0), step * disc, frames)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
