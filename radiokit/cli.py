@@ -206,7 +206,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "saturation": top,
         "saturation_from": basis if top is not None else None,
         "nonfinite": nonfinite,
-        "metadata": _summary(src.meta) | _stack_domain(path, src.meta) | _assumed_pitch(path, src.meta),
+        "metadata": _summary(src.meta) | _stack_domain(src) | _assumed_pitch(src),
     }
 
 
@@ -223,38 +223,33 @@ _DOMAINS = {
 }
 
 
-def _stack_domain(path, meta: dict) -> dict:
+def _stack_domain(src) -> dict:
     """``{"domain": words}`` for a stack ``radiokit correct`` wrote (it records its domain in the
     TIFF's description, or its HDF5 frames' group), else nothing."""
-    value = None
+    meta, value = src.meta, None
     if meta.get("format") == "tiff" and isinstance(meta.get("description"), dict):
         value = meta["description"].get("domain")
     elif meta.get("format") == "hdf5":
         from radiokit.io._write import STACK, STACK_FRAMES
 
         if meta.get("dataset") == f"/{STACK_FRAMES}":
-            import h5py
-
-            with h5py.File(path, "r") as h5:
-                value = h5[STACK].attrs.get("domain")
+            value = src.hdf5_attribute(STACK, "domain")
     value = value.decode(errors="replace") if isinstance(value, bytes) else value
     return {"domain": _DOMAINS.get(value, value)} if isinstance(value, str) and value else {}
 
 
-def _assumed_pitch(path, meta: dict) -> dict:
+def _assumed_pitch(src) -> dict:
     """``{"pixel_size": "not recorded (assumed N µm)"}`` for a results.h5 whose run assumed its
     pitch: the file leaves NeXus's x_pixel_size out then (it would state the pitch as the data's),
     and its embedded results.json says ``pixel_size_recorded: false``; else nothing."""
     from radiokit.io._results import ENTRY, RESULTS_STEPS
 
+    meta = src.meta
     if meta.get("format") != "hdf5" or meta.get("dataset", "").rsplit("/", 1)[0] != f"/{RESULTS_STEPS}":
         return {}
     if meta.get("pixel_size_mm") is not None:
         return {}
-    import h5py
-
-    with h5py.File(path, "r") as h5:
-        text = h5[ENTRY].attrs.get("results_json")
+    text = src.hdf5_attribute(ENTRY, "results_json")
     try:
         numbers = json.loads(text.decode() if isinstance(text, bytes) else text)
         pitch = float(numbers["pixel_size_mm"]) * 1e3

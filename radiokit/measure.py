@@ -1049,6 +1049,16 @@ def _inscribed_square(region: np.ndarray, shrink: float) -> ROI:
 
 
 _MIN_T = 8.0
+#: A blob fit's surroundings (the ring its quadratic is fitted to) start this many radii out; the
+#: blob's half-maximum region is kept inside them (:func:`_half_maximum_window`).
+_RING_INNER = 1.5
+#: The scales, in a neighbour's radii, :meth:`_Neighbours._extent` fits at, up to the last.
+_EXTENT_SCALES = (1, 2, 4)
+#: A neighbour's extent grown about its centre by this (:meth:`_Neighbours._extent_overlaps`).
+_EXTENT_GROWTH = 1.2
+#: How far, in its radii, a neighbour's grown extent can reach: the widest region it can have
+#: (up to the ring at its largest scale), grown.
+_EXTENT_REACH = _EXTENT_GROWTH * _RING_INNER * max(_EXTENT_SCALES)  # 7.2
 
 
 def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
@@ -1068,7 +1078,7 @@ def _blob_fit(img: np.ndarray, body: np.ndarray, center, radius: float):
     v = ((np.arange(r0, r1) - pr) / radius)[:, None]
     u = ((np.arange(c0, c1) - pc) / radius)[None, :]
     dist = np.hypot(v, u)
-    ring = (dist >= 1.5) & (dist <= 3.0) & body[r0:r1, c0:c1]
+    ring = (dist >= _RING_INNER) & (dist <= 3.0) & body[r0:r1, c0:c1]
     idx = np.flatnonzero(ring)
     if idx.size < 24:
         return -np.inf, None
@@ -1236,7 +1246,7 @@ def _half_maximum_window(fit, radius: float, keep=None):
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")
     core = dist <= max(0.5, 1.0 / radius)
     peak_idx = int(np.argmax(np.where(core, resid, -np.inf)))
-    above = (resid >= resid.flat[peak_idx] / 2) & (dist <= 1.5)
+    above = (resid >= resid.flat[peak_idx] / 2) & (dist <= _RING_INNER)
     if keep is not None:
         above &= keep
     if not above.flat[peak_idx]:
@@ -1258,7 +1268,7 @@ class _Neighbours:
     demo's detection 40 % more."""
 
     def __init__(self, signed: dict, body: np.ndarray, found: list, chosen: np.ndarray, centre, radius: float):
-        self._signed, self._body, self._centre, self._reach = signed, body, centre, 1.5 * radius
+        self._signed, self._body, self._centre, self._reach = signed, body, centre, _RING_INNER * radius
         self._clear = None
         self._cands = []  # ((row, col), radius, sign), the strongest response first
         self._stands: dict[int, bool] = {}  # by index: whether it stands out (None: not yet tested)
@@ -1306,7 +1316,7 @@ class _Neighbours:
         if i not in self._extents:
             centre, r_c, sign = self._cands[i]
             self._extents[i] = []
-            for radius in (r_c, 2 * r_c, 4 * r_c):
+            for radius in (scale * r_c for scale in _EXTENT_SCALES):
                 fit = _blob_fit(self._signed[sign], self._clear_body(), centre, radius)[1]
                 if fit is None:
                     break
@@ -1322,8 +1332,8 @@ class _Neighbours:
         sphere's half maximum lies at sqrt(3)/2 of its radius, an ellipsoid's likewise on each axis)."""
         (pr, pc), _, _ = self._cands[i]
         for region, (r0, c0) in self._extent(i):
-            rows = np.rint(pr + (np.arange(roi.row0, roi.row1) - pr) / 1.2).astype(int) - r0
-            cols = np.rint(pc + (np.arange(roi.col0, roi.col1) - pc) / 1.2).astype(int) - c0
+            rows = np.rint(pr + (np.arange(roi.row0, roi.row1) - pr) / _EXTENT_GROWTH).astype(int) - r0
+            cols = np.rint(pc + (np.arange(roi.col0, roi.col1) - pc) / _EXTENT_GROWTH).astype(int) - c0
             rows = rows[(rows >= 0) & (rows < region.shape[0])]
             cols = cols[(cols >= 0) & (cols < region.shape[1])]
             if region[np.ix_(rows, cols)].any():
@@ -1342,17 +1352,25 @@ class _Neighbours:
     def near(self, roi: ROI) -> list:
         """The centres of the structures whose disc of 1.2 radii ``roi`` overlaps (a sphere's edge,
         where the LoG's radius ends, still adds to the line integral), or, for one known to stand
-        out, its extent (:meth:`_extent_overlaps`; at most 1.2 x 1.5 of four times its radius)."""
+        out, its extent (:meth:`_extent_overlaps`; at most :func:`_reach_px` of its centre)."""
         out = []
         rows, cols, radii = self._at.T
         dist = np.hypot(np.clip(rows, roi.row0, roi.row1 - 1) - rows, np.clip(cols, roi.col0, roi.col1 - 1) - cols)
-        for i in np.flatnonzero(dist < 7.2 * radii):  # the strongest first, as _cands
+        for i in np.flatnonzero(dist < _reach_px(radii)):  # the strongest first, as _cands
             i, d, ((r, c), r_c, _) = int(i), dist[i], self._cands[i]
             if d < 1.2 * r_c and self._structure(i):
                 out.append((r, c))
             elif self._stands.get(i) and self._structure(i) and self._extent_overlaps(i, roi):
                 out.append((r, c))
         return out
+
+
+def _reach_px(radius):
+    """How far (px) from a neighbour of ``radius`` a ROI's nearest pixel can lie and overlap its
+    grown extent: :data:`_EXTENT_REACH` radii and one pixel more, as :meth:`_Neighbours._extent_overlaps`
+    takes each ROI pixel to the region's nearest, up to half a pixel a side (0.85 px once grown):
+    a ROI 0.4-0.7 px beyond 7.2 radii overlapped an extent that near() passed by (review s44)."""
+    return _EXTENT_REACH * radius + 1.0
 
 
 def _length_px(value, name, pixel_size_mm):

@@ -1305,13 +1305,13 @@ def _control(cfg: Config, rois: RoiChoice, out_dir: Path) -> Results | None:
 
 def _write(out_dir, record: Results, images: Images, cfg, t0):
     from radiokit.io import EnhancedImages, ResultsRecord, write_results
-    from radiokit.report import _draw, _write_page
+    from radiokit.report import draw_figures, write_page
 
     files = {}
     figures = None
     if cfg.report:  # the figures, the report's time: the page is written below, with the total
         t = time.perf_counter()
-        figures = _draw(out_dir, record, images)
+        figures = draw_figures(out_dir, record, images)
         record.timings["report_s"] = time.perf_counter() - t
     # measured once, before any file is written, so the page, results.h5's copy of the numbers and
     # results.json show one total (the page's was 0.02 s short and results.h5's had none: review
@@ -1343,7 +1343,7 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
     )
     files["results_h5"] = str(h5path)
     if figures is not None:
-        files["report"] = str(_write_page(out_dir, record, figures))
+        files["report"] = str(write_page(out_dir, record, figures))
     files["results_json"] = str(record.write_json(out_dir / "results.json"))
     return files
 

@@ -6,6 +6,12 @@
 can be moved or zipped) and returns the HTML path. The page has inline CSS, no JavaScript and no network references; every piece of text
 that comes from the data is escaped.
 
+``write_report`` is two steps, public for a caller that must do something between them:
+``draw_figures(out_dir, results, images)`` draws the figures and returns their HTML, and
+``write_page(out_dir, results, figures)`` writes ``report.html`` around them.
+:func:`radiokit.pipeline.process` times the first as the report's time and takes the run's total
+before writing any file, so that the page, ``results.json`` and ``results.h5`` show one total.
+
 What a reader finds, in order:
 
 1. a headline table (this run against the paper) and a paragraph saying in plain words what the
@@ -45,7 +51,7 @@ from radiokit._version import __version__
 from radiokit.measure import PAPER  # used where results.paper does not give them
 from radiokit.results import Images, Results, k_label, sig3, value_pm
 
-__all__ = ["write_report", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
+__all__ = ["write_report", "draw_figures", "write_page", "stiffness_share", "PAPER", "MAX_PNG_BYTES"]
 
 #: Upper bound on the size of one figure file.
 MAX_PNG_BYTES = 300_000
@@ -1116,7 +1122,7 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
             f"results.json), got {type(results).__name__} and {type(images).__name__}"
         )
     t0 = time.perf_counter()
-    fig_html = _draw(out_dir, results, images)
+    fig_html = draw_figures(out_dir, results, images)
     timings = dict(results.timings)
     own_report_time = "report_s" not in timings
     if own_report_time:
@@ -1125,22 +1131,50 @@ def write_report(out_dir, results: Results, images: Images) -> Path:
         # the sum of its own rows
         if _num(timings.get("total_s")) is not None:
             timings["total_s"] += timings["report_s"]
-    return _write_page(out_dir, dataclasses.replace(results, timings=timings), fig_html, own_report_time)
+    return write_page(out_dir, dataclasses.replace(results, timings=timings), fig_html, own_report_time=own_report_time)
 
 
-def _draw(out_dir, results: Results, images: Images) -> dict:
-    """The report's figures drawn into ``out_dir/figures``: :func:`_figures`' HTML by file name.
-    The first half of :func:`write_report`; :func:`radiokit.pipeline.process` times it as the
-    report's time and takes its total before writing any file, so that the page, results.json and
-    results.h5 show one total."""
+def draw_figures(out_dir, results: Results, images: Images) -> dict[str, str]:
+    """Draw the report's figures into ``out_dir/figures/``: the first step of :func:`write_report`.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The report's folder; ``figures/`` in it is created if missing, its PNGs overwritten.
+    results, images : radiokit.results.Results, radiokit.results.Images
+        As for :func:`write_report`.
+
+    Returns
+    -------
+    dict
+        ``{file name: HTML <figure>}`` for every figure, to hand to :func:`write_page`.
+    """
     fig_dir = Path(out_dir) / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     return _figures(images, results, fig_dir)
 
 
-def _write_page(out_dir, results: Results, fig_html: dict, own_report_time: bool = False) -> Path:
-    """``report.html`` around the figures :func:`_draw` drew; its timings are ``results.timings``
-    (``own_report_time``: the report's row is this page's own measurement, said beneath it)."""
+def write_page(out_dir, results: Results, fig_html: dict[str, str], *, own_report_time: bool = False) -> Path:
+    """Write ``out_dir/report.html`` around the figures :func:`draw_figures` drew: the second step
+    of :func:`write_report`.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The folder :func:`draw_figures` drew into; ``report.html`` in it is overwritten.
+    results : radiokit.results.Results
+        The run's numbers; the page's timings table is ``results.timings`` as given.
+    fig_html : dict
+        What :func:`draw_figures` returned.
+    own_report_time : bool, optional
+        The report's time row is this page's own measurement, not the caller's: a line beneath
+        the table says so.
+
+    Returns
+    -------
+    Path
+        The HTML file.
+    """
     paper = {**PAPER, **(results.paper or {})}
     parts = _head(results, paper) + ["<h2>Images</h2>"]
     parts += [fig_html[n] for n in ("projections.png", "profiles.png", "difference.png", "rois.png")]

@@ -66,6 +66,36 @@ def test_the_check_can_fail(tmp_path):
         assert _cross_package_private_imports(tmp_path / "m.py", "radiokit") == []
 
 
+def _names_imported_from(module: str, root: Path, package: str = "radiokit") -> list[str]:
+    """``path:line: name`` for every name that ``package``'s modules, other than ``module`` itself,
+    import from ``module`` (absolute imports: the package uses no relative ones)."""
+    found = []
+    for path in sorted((root / package).rglob("*.py")):
+        if ".".join(path.relative_to(root).with_suffix("").parts) == module:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+            if isinstance(node, ast.ImportFrom) and node.module == module:
+                found += [f"{path.relative_to(root).as_posix()}:{node.lineno}: {a.name}" for a in node.names]
+    return found
+
+
+def test_the_report_is_used_through_its_public_interface():
+    """The pipeline draws the report's figures and writes its page in two steps (its total is taken
+    between them): through names in ``radiokit.report.__all__``, never its private helpers. Other
+    modules of radiokit still import private names of measure, register, io and pipeline (review s44)."""
+    import radiokit.report
+
+    public = set(radiokit.report.__all__)
+    found = [hit for hit in _names_imported_from("radiokit.report", REPO) if hit.rsplit(" ", 1)[1] not in public]
+    assert not found, "names imported from radiokit.report outside its __all__:\n" + "\n".join(found)
+
+
+def test_the_report_check_can_fail(tmp_path):
+    (tmp_path / "radiokit").mkdir()
+    (tmp_path / "radiokit" / "m.py").write_text("from radiokit.report import _draw, write_report\n")
+    assert [h.rsplit(" ", 1)[1] for h in _names_imported_from("radiokit.report", tmp_path)] == ["_draw", "write_report"]
+
+
 # -- functions stay short ------------------------------------------------------------------------
 MAX_CODE_LINES = 60
 LONG_REASON = "Long because"

@@ -1161,6 +1161,43 @@ def test_info_on_results_h5_says_an_assumed_pitch_was_not_recorded(tmp_path, rec
         assert meta["pixel_size"] == "not recorded (assumed 50 \u00b5m)" and "pixel_size_mm" not in meta
 
 
+@pytest.mark.parametrize("kind", ["results", "stack"])
+def test_info_opens_an_hdf5_file_once(tmp_path, monkeypatch, capsys, kind):
+    """Review s44: `info` on a results.h5 whose pitch was assumed, or on a corrected HDF5 stack,
+    opened the file twice: once to read its frames, again for the one attribute that says the
+    pitch was assumed or the stack's domain. The second open now reads through the first."""
+    import h5py
+
+    from radiokit.cli import main
+    from radiokit.io import ResultsRecord, StackWriter, write_results
+
+    path = tmp_path / "file.h5"
+    if kind == "results":
+        numbers = {"schema_version": "1.4", "pixel_size_mm": 0.05, "pixel_size_recorded": False}
+        steps = np.zeros((2, 8, 8), np.float32)
+        crop = np.array([0, 8, 0, 8])
+        write_results(
+            path,
+            ResultsRecord("exp.h5", json.dumps(numbers), steps, np.array([1, 2]), np.array([0.1, 0.2]), crop, (1, 2)),
+        )
+        expected = ("pixel_size", "not recorded (assumed 50 \u00b5m)")
+    else:
+        with StackWriter(path, (8, 8), meta={"domain": "log"}) as out:
+            out.append(np.ones((8, 8), np.float32))
+        expected = ("domain", "log: line integrals -ln(I/I0)")
+    opened, real = [], h5py.File
+
+    def counting(name, *args, **kwargs):
+        if isinstance(name, (str, os.PathLike)):  # h5py wraps an open file's id in File too: no open
+            opened.append(Path(name))
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(h5py, "File", counting)
+    assert main(["info", "--json", str(path)]) == 0
+    assert opened == [path]
+    assert json.loads(capsys.readouterr().out)[0]["metadata"][expected[0]] == expected[1]
+
+
 def test_correct_reads_a_raw_size_of_several_presets_at_the_calibrations_shape(tmp_path):
     """`radiokit correct frames.raw --cal cal.h5`: four 4x4-binned frames have the bytes of one
     2x2-binned frame, and were refused as ambiguous though the calibration says the panel's frames

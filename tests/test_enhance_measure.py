@@ -454,6 +454,35 @@ def test_find_rois_on_a_blob(domain, pixel_size_mm, centre):
     assert 6 <= gap <= 12
 
 
+@pytest.mark.parametrize("radius, centre", [(3.0, (40.0, 40.0)), (4.0, (50.25, 49.75)), (5.5, (60.5, 60.5))])
+def test_a_neighbours_reach_covers_the_widest_extent_it_can_have(radius, centre):
+    """Review s44: near() looks only at candidates within 7.2 of their radii of a ROI, a number
+    that was 1.2 x 1.5 x 4 of the extent's factors written out. Every one-pixel ROI that the
+    widest extent overlaps (its half-maximum region filling the fit's limit at the largest
+    scale, grown) must be within that reach: the growth maps each ROI pixel to the region's
+    nearest, and ROIs up to 0.7 px beyond 7.2 radii overlapped it unseen."""
+    M = radiokit.measure
+    big = max(M._EXTENT_SCALES) * radius
+    pr, pc = centre
+    reach = int(np.ceil(3 * big)) + 1  # the window _blob_fit takes at that scale
+    r0, c0 = round(pr) - reach, round(pc) - reach
+    v = (np.arange(r0, round(pr) + reach + 1) - pr) / big
+    u = (np.arange(c0, round(pc) + reach + 1) - pc) / big
+    dist = np.hypot(v[:, None], u[None, :])
+    # a residual above half its peak everywhere: the region is all the fit's limit lets it be
+    region = M._half_maximum_window((np.ones_like(dist), (r0, c0), dist), big)
+    assert region[0].sum() == np.count_nonzero(dist <= M._RING_INNER)
+    near = M._Neighbours.__new__(M._Neighbours)  # one candidate, its extent given
+    near._cands, near._extents = [(centre, radius, 1)], {0: [region]}
+    yy, xx = np.mgrid[round(pr - 9 * radius) : round(pr + 9 * radius), round(pc - 9 * radius) : round(pc + 9 * radius)]
+    d = np.hypot(yy - pr, xx - pc)
+    ring = (d > 6 * radius) & (d < 9 * radius)
+    hit = [dd for y, x, dd in zip(yy[ring], xx[ring], d[ring]) if near._extent_overlaps(0, ROI(y, y + 1, x, x + 1))]
+    # the grown extent reaches 1.2 x 1.5 x 4 radii, give or take the pixel it is sampled on
+    assert max(hit) == pytest.approx(M._EXTENT_REACH * radius, abs=1.0)
+    assert max(hit) < M._reach_px(radius)
+
+
 def test_find_rois_goes_right_when_left_leaves_the_body():
     img, blob, body = _dome_with_blob(centre=(75, 40))
     inc, bg = find_rois(img)

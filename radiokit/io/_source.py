@@ -1763,6 +1763,15 @@ class FrameSource:
             self._check_bits(out[i])
         return self.n
 
+    def hdf5_attribute(self, name: str, key: str):
+        """The attribute ``key`` of the group or dataset ``name`` in this open HDF5 file, read
+        without opening the file again (``radiokit info`` opened it a second time for one
+        attribute); ``None`` if this source is no HDF5 file or either is absent."""
+        if self._h5 is None:
+            return None
+        obj = self._h5.get(name)
+        return None if obj is None else obj.attrs.get(key)
+
     def close(self):
         for sibling in getattr(self, "_siblings", {}).values():
             sibling.close()
