@@ -4103,7 +4103,17 @@ def test_cli_warm_up_that_joins_a_running_one_says_so():
     for: nothing is set or sent that emits, and the line says that, not "no warm-up needed"."""
     from conftest import run_cli
 
-    model = L8121Model(dialect="A", warmup_s=1.0)
+    # the model's time stands still until the command's first line has arrived: a warm-up of 1 s
+    # of wall time ended before a loaded machine's CLI had asked (CI-like load, session 44)
+    first_line_at = []
+
+    def clock():
+        if not first_line_at and n < float("inf") and len(model.log) > n:
+            first_line_at.append(time.monotonic())
+        return time.monotonic() - first_line_at[0] if first_line_at else 0.0
+
+    n = float("inf")
+    model = L8121Model(dialect="A", warmup_s=1.0, clock=clock)
     with PtyServer(model) as server:
         assert model.handle("WUP") == "WUP"
         n = len(model.log)
