@@ -215,7 +215,7 @@ def _auto_row(tag, pair, fast_only=False):
     its finest level (``_auto.EXTEND``) and, over the checks' ~0.4 Mpx, stop early
     (``_auto.ABANDON``), neither of which the plain preset's row does."""
     from radiokit.register import register
-    from radiokit.register._auto import AUTO_PRESETS, choose, returned, straight_to_weak
+    from radiokit.register._auto import AUTO_PRESETS, checks_silent, choose, returned, straight_to_weak
 
     f, m, d, mask = pair
     res, chose, quality = {}, {}, {}
@@ -241,7 +241,7 @@ def _auto_row(tag, pair, fast_only=False):
         if straight_to_weak(name, "rc", other, f.shape, {"preset": name}, False) and other in res:
             res[name], chose[name] = res[other], other  # the plain run skipped (frames over 1.6 Mpx)
             continue
-        tried = not res[plain][3] and other != plain
+        tried = (not res[plain][3] or checks_silent(name, quality[plain], other)) and other != plain
         use = returned(name, quality[plain], other, quality.get(other))
         v = res[use]
         res[name] = v if not tried else (v[0], v[1], res[other][2] + res[plain][2], v[3])

@@ -111,13 +111,13 @@ def _auto_choice(name, fixed, regs):
     results ``regs`` (configuration -> Registration), by ``register_auto``'s own rule (faithful
     in frames of at most the checks' ~0.4 Mpx, such as the 560 family, where the plain run is
     never stopped early: ``_auto.ABANDON``)."""
-    from radiokit.register._auto import AUTO_PRESETS, choose, returned, settled, straight_to_weak
+    from radiokit.register._auto import AUTO_PRESETS, checks_silent, choose, returned, settled, straight_to_weak
 
     auto, plain, _ = AUTO[name]
     fallback = choose(fixed, auto).preset
     if straight_to_weak(auto, "rc", fallback, fixed.shape, {"preset": auto}, False):
         return "rc-" + fallback  # its plain run is not run at all (frames over 1.6 Mpx)
-    if settled(regs[plain].quality):  # as register_auto: no fallback is judged
+    if settled(regs[plain].quality) and not checks_silent(auto, regs[plain].quality, fallback):  # as register_auto
         return plain
     retry = regs.get("rc-" + fallback)  # absent only when nothing is retried (names: the presets')
     use = returned(auto, regs[plain].quality, fallback, retry.quality if retry is not None else None)

@@ -433,7 +433,7 @@ def _assessed(name, fixed, moving, d, info, sec):
 def run_seed(seed, presets, out, fresh=False):
     """Every preset of ``presets`` on one pair: JSON-able rows, the fields from the cache (the
     flag assessed again by the present code) or registered now."""
-    from radiokit.register._auto import choose, polishes, returned, settled
+    from radiokit.register._auto import checks_silent, choose, polishes, returned, settled
 
     fixed, moving, truth, body, info = make_pair(seed)
     need = set(presets) - {"auto"} | ({"auto-plain", "weak", "silent"} if "auto" in presets else set())
@@ -448,11 +448,12 @@ def run_seed(seed, presets, out, fresh=False):
         if preset == "auto":
             plain = regs["auto-plain"]
             use, sec = "auto-plain", secs["auto-plain"]
-            if not settled(plain.quality):
-                fb = choose(fixed, "auto").preset
+            fb = choose(fixed, "auto").preset
+            if not settled(plain.quality) or checks_silent("auto", plain.quality, fb):
                 r = returned("auto", plain.quality, fb, regs[fb].quality if fb in regs else None)
                 use = "auto-plain" if r == "default" else r
-                if fb in regs and (not plain.quality.ok or polishes("auto", plain.quality, fb)):
+                retried = polishes("auto", plain.quality, fb) or checks_silent("auto", plain.quality, fb)
+                if fb in regs and (not plain.quality.ok or retried):
                     sec += secs[fb]  # the retry ran, kept or not
         rows.append(_row(seed, preset, regs[use], sec, truth, body, info, fixed, use))
     return rows

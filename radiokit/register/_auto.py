@@ -13,7 +13,10 @@ result is kept only when its residual moves less (``quality.residual_motion``, s
 interior carries no texture is tried again with ``silent`` (``silent-fast``): the field starts
 from the silhouettes' affine map and the lattices are stiff, the least-bent field the edges
 allow, which is what a compressed phantom's silent slab does (the simulated pva-phantom side
-view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. On a
+view: 13.9 -> 0.28 px at 560); that retry is kept unless it leaves more misaligned. A plain run
+that passed its checks on such a body is tried with ``silent`` too, and replaced when the silent
+run passes its checks as well and leaves no more misaligned (:func:`checks_silent`: a free
+lattice can fit a turned body's rim and inclusion and bend the field between them unseen). On a
 textured interior, in a frame larger than the checks' ~0.4 Mpx, the plain run stops before its
 finest level when it is still far off there (``ABANDON``; the weak preset follows, and the plain
 run is finished after all only if the weak one does not beat it). That compares an unfinished run
@@ -88,6 +91,7 @@ __all__ = [
     "ABANDON",
     "EXTEND",
     "polishes",
+    "checks_silent",
     "settled",
     "finest_from_weak",
     "keeps_finest",
@@ -324,6 +328,22 @@ def polishes(name, plain_quality, fallback) -> bool:
     return bool(plain_quality.ok and fallback == AUTO_PRESETS[name][1] and not settled(plain_quality))
 
 
+def checks_silent(name, plain_quality, fallback) -> bool:
+    """Whether a plain run that passed its own checks is tried again with the silent preset all
+    the same: whenever :func:`choose` falls back to it (a silent body), settled or not. On a
+    silent body the plain run's free lattice can fit the rim and an inclusion each where it lies
+    and bend the field between them, a field the residual cannot fault (the rim of a round body
+    moves along itself under a turn; the confidence map's windows observe a translation, not the
+    field's bending within them): the turned bodies of ``bench_register_turned`` (TRAINING seeds)
+    were trusted at 6.56 and 1.43 px (seeds 12, 23), where ``silent`` registered 0.05 and 0.01 px
+    and passed its checks; on the nine TRAINING pairs where it replaced the plain run (seven turned
+    bodies, a phantom-like pair, a noisy-fixed pair) it was the better field every time, and the
+    family's silent bodies never reach it (their plain run fails its checks; benchmarks/README.md,
+    "auto's trusted default on turned bodies (session 44)"). The retry replaces the plain run only
+    when it passes its own checks too (:func:`returned`)."""
+    return bool(plain_quality.ok and fallback == AUTO_PRESETS[name][2] != AUTO_PRESETS[name][0])
+
+
 def returned(name, plain_quality, fallback, retry_quality) -> str:
     """The preset ``register(..., preset=name)`` returns, given the plain run's ``Quality``, the
     preset :func:`choose` fell back to, and that retry's ``Quality`` (read only when the retry
@@ -331,6 +351,9 @@ def returned(name, plain_quality, fallback, retry_quality) -> str:
     else is tried, else the retry if :func:`keeps_retry` prefers it. The benchmarks compose
     ``auto`` from cached runs with it."""
     plain, _, silent = AUTO_PRESETS[name]
+    if checks_silent(name, plain_quality, fallback):  # both trusted: the silent one unless it leaves more misaligned
+        kept = retry_quality is not None and retry_quality.ok and keeps_retry(plain_quality, retry_quality, silent=True)
+        return fallback if kept else plain
     if (plain_quality.ok and not polishes(name, plain_quality, fallback)) or fallback == plain:
         return plain
     return fallback if keeps_retry(plain_quality, retry_quality, silent=fallback == silent) else plain
@@ -420,10 +443,11 @@ def register_auto(register, f, m, method, mask, retry, options):
     # (ABANDON): the weak preset follows anyway
     early = fallback.preset == AUTO_PRESETS[name][1] and not retry
     first = register(f, m, method, mask, retry=retry, **_plain(name, options, early))
-    if settled(first.quality):
+    if settled(first.quality) and not checks_silent(name, first.quality, fallback.preset):
         first.options["auto"] = AutoChoice(plain, float("nan"), float("nan"), f"{plain} passed its own checks")
         return first
-    if fallback.preset == plain or (first.quality.ok and not polishes(name, first.quality, fallback.preset)):
+    retried = polishes(name, first.quality, fallback.preset) or checks_silent(name, first.quality, fallback.preset)
+    if fallback.preset == plain or (first.quality.ok and not retried):
         why = f"{plain} passed its own checks" if first.quality.ok else fallback.reason
         first.options["auto"] = AutoChoice(plain, fallback.ratio, fallback.interior, why)
         return first
@@ -439,7 +463,9 @@ def register_auto(register, f, m, method, mask, retry, options):
         a, b, what = first.quality.misaligned_fraction, second.quality.misaligned_fraction, "misaligned"
     else:
         a, b, what = first.quality.residual_motion, second.quality.residual_motion, "residual motion"
-    state = f"{plain} ok, its residual still moving" if first.quality.ok else f"{plain} not ok ({first.quality.reason})"
+    state = f"{plain} not ok ({first.quality.reason})"
+    if first.quality.ok:
+        state = f"{plain} ok" + ("" if settled(first.quality) else ", its residual still moving")
     why = f"{state}; {fallback.reason}; {what} {a:.2f} -> {b:.2f}"
     best = second if returned(name, first.quality, fallback.preset, second.quality) != plain else first
     chose = None
