@@ -1399,8 +1399,7 @@ PROCESS_BYTES_PER_STEP_PIXEL = 45
 def _process_need(path, cfg) -> tuple[int, str] | None:
     """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
     index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
-    from radiokit.io import C7942_PIXEL_SIZE_MM, open_frames
-    from radiokit.io._budget import _human
+    from radiokit.io import C7942_PIXEL_SIZE_MM, human_bytes, open_frames
 
     try:
         with open_frames(path) as src:
@@ -1417,7 +1416,7 @@ def _process_need(path, cfg) -> tuple[int, str] | None:
     per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
     need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
     words = (
-        f"its {rows}x{cols} frames of {n_steps} steps need about {_human(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
+        f"its {rows}x{cols} frames of {n_steps} steps need about {human_bytes(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
         + (f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}" if more else "")
         + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the {int(min(side, rows))}x{int(min(side, cols))} crop kept)"
     )
@@ -1499,7 +1498,8 @@ def _memory_shares(client) -> dict:
     or half its available memory; a budget given to this process stands for every host) divided
     among the files the host's workers process at once (their Dask threads), and no more than the
     worker's own Dask ``memory_limit`` divided among its threads (its nanny stops it past that)."""
-    from radiokit.io._budget import _human, explicit_budget, host_budget
+    from radiokit.io import human_bytes
+    from radiokit.io._budget import explicit_budget, host_budget
 
     info = _all_workers(client)
     given = host_budget() if explicit_budget() else None
@@ -1516,16 +1516,16 @@ def _memory_shares(client) -> dict:
         budget = given if given is not None else min(seen) if seen else host_budget()
         for a in addrs:
             share = budget // at_once
-            words = f"the memory budget of {_human(budget)} on host {host}" + (
-                f", shared by the {at_once} files its Dask workers process at once ({_human(share)} each)"
+            words = f"the memory budget of {human_bytes(budget)} on host {host}" + (
+                f", shared by the {at_once} files its Dask workers process at once ({human_bytes(share)} each)"
                 if at_once > 1
                 else ""
             )
             n, limit = max(1, int(info[a]["nthreads"])), int(info[a].get("memory_limit") or 0)
             if limit and limit // n < share:
                 share = limit // n
-                words = f"Dask's memory_limit of {_human(limit)} for worker {a}" + (
-                    f", shared by the {n} files it processes at once ({_human(share)} each)" if n > 1 else ""
+                words = f"Dask's memory_limit of {human_bytes(limit)} for worker {a}" + (
+                    f", shared by the {n} files it processes at once ({human_bytes(share)} each)" if n > 1 else ""
                 )
             shares[a] = (share, words)
     return shares
@@ -1552,7 +1552,7 @@ def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: 
     processed while the file's own images are held (the control's record is made last), so the two
     are charged together, and the control alone first, named ``control_name`` (``--control `` on
     the command line). A file that cannot be opened is passed: its own error is said in its turn."""
-    from radiokit.io._budget import _human
+    from radiokit.io import human_bytes
 
     control = _process_need(cfg.control, cfg) if cfg.control else None
     if control is not None and control[0] > share:
@@ -1560,7 +1560,7 @@ def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: 
     for path in paths:
         mine = _process_need(path, cfg)
         if mine is not None and mine[0] + (control[0] if control else 0) > share:
-            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
+            beside = f", and its control {cfg.control} {human_bytes(control[0])} beside it" if control else ""
             raise ValueError(f"{path}: processing {mine[1]}{beside}, over {over}")
 
 
@@ -1626,7 +1626,7 @@ def process_many(
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, _remove_stale, _restore_interrupted, remove_empty_folders
+    from radiokit.io import missing_folders, recover_interrupted, remove_empty_folders
     from radiokit.progress import tqdm
 
     if out_root is not None:
@@ -1654,7 +1654,7 @@ def process_many(
         shares = {a: dataclasses.replace(s, memory=memory[a][0]) if a in memory else s for a, s in shares.items()}
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
-        made = _missing_folders(out_root) if out_root is not None else []
+        made = missing_folders(out_root) if out_root is not None else []
         if made:
             Path(out_root).mkdir(parents=True)
         client.run(_limit_worker, shares)
@@ -1689,9 +1689,8 @@ def process_many(
                 # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
                 # results folder's temporary: removed once its process is gone, as the next run would
                 for out in outs:
-                    _remove_stale(out, folder=True)
                     with contextlib.suppress(OSError):  # one stopped while its old folder was aside
-                        _restore_interrupted(out)
+                        recover_interrupted(out)
             remove_empty_folders(made)  # every file failed: no empty folder left behind
             restore()
 
@@ -1704,9 +1703,9 @@ def _process_limits():
     import cv2
     from threadpoolctl import ThreadpoolController
 
-    from radiokit.io import _budget
+    from radiokit.io._budget import memory_share, set_share
 
-    threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), _budget._share, cv2.getNumThreads()
+    threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), memory_share(), cv2.getNumThreads()
     libraries = [(lib, lib.num_threads) for lib in ThreadpoolController().lib_controllers]
 
     def restore():
@@ -1714,7 +1713,7 @@ def _process_limits():
             os.environ.pop("RADIOKIT_THREADS", None)
         else:
             os.environ["RADIOKIT_THREADS"] = threads
-        _budget.set_share(share)
+        set_share(share)
         cv2.setNumThreads(cv_threads)
         for lib, n in libraries:
             with contextlib.suppress(Exception):
