@@ -71,7 +71,7 @@ from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
-from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI, _mm_to_px, _NoBackgroundFits, _round_half_up
+from radiokit.measure import PAPER, ROI, NoBackgroundFits
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
 __all__ = [
@@ -368,7 +368,10 @@ def _roi(value, units, pixel_size_mm, name):
     if units == "mm":
         # from the frame's corner, half up as ROI.from_mm: round() took halves to even, so a
         # rectangle 3 pixels wide on half-pixel edges became 2 or 4 by where it sat (review s42api)
-        return _checked_roi(what, units, *(_round_half_up(_mm_to_px(v, pixel_size_mm)) for v in (r0, r1, c0, c1)))
+        try:
+            return ROI.from_mm_edges((r0, r1, c0, c1), pixel_size_mm)
+        except ValueError as exc:
+            raise ValueError(f"{what} ({units}): {exc}") from None
     # pixels: a fractional one was rounded without a word; mm are rounded to pixels (README). A
     # bound computed in floating point (0.1 * 300 = 30.000000000000004) is that whole number: the
     # tolerance is far above float64's rounding and far below any real fraction
@@ -908,10 +911,12 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         try:
             auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
         except ValueError as exc:
-            if inc is None and bg is not None and isinstance(exc, _NoBackgroundFits):
+            if inc is None and bg is not None and isinstance(exc, NoBackgroundFits):
                 auto_inc, auto_bg = exc.inclusion, None  # the inclusion was found; only its background was missing
             elif inc is None:  # find_rois's advice names its keywords, which process does not take (review s41proc)
-                raise ValueError(str(exc).replace(_BACKGROUND_ADVICE, _BOTH_ROIS)) from None
+                raise ValueError(
+                    f"{exc.reason}; {_BOTH_ROIS}" if isinstance(exc, NoBackgroundFits) else str(exc)
+                ) from None
             else:
                 auto_inc = auto_bg = None
         if bg is None and inc is not None:
