@@ -765,7 +765,6 @@ def _check_register_memory(args, fixed) -> None:
 
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, write_registration
-    from radiokit.pipeline import _preset_record
     from radiokit.register import register, with_default_preset
 
     fixed, moving, mask = _register_inputs(args)
@@ -790,7 +789,7 @@ def cmd_register(args) -> int:
     registered = reg.warp(moving)
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
-    quality = vars(q) | _preset_record(reg)
+    quality = vars(q) | reg.run_record()
     write_registration(
         args.output,
         RegistrationRecord(

@@ -236,19 +236,13 @@ def _check_methods(method, cross_check, options) -> None:
     not take (a B-spline ``preset`` given to a peer) and a B-spline option's value of the wrong
     kind or range, as ``ValueError`` in one line: found only at the first registration they cost
     the correction, and a peer's ``TypeError`` a traceback."""
-    from radiokit.register import BSPLINE_METHODS, METHODS, _check_option_names, _load_methods
-    from radiokit.register._bspline import check_option_values
+    from radiokit.register import check_options, load_methods
 
-    _load_methods()
+    methods = load_methods()
     for what, name in (("method", method), ("cross_check", cross_check)):
-        if name is not None and not (isinstance(name, str) and name in METHODS):  # a list: TypeError unhashable
-            raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(METHODS))}")
-    try:
-        _check_option_names(method, options)
-    except TypeError as exc:
-        raise ValueError(str(exc)) from None
-    if method in BSPLINE_METHODS:
-        check_option_values(options)
+        if name is not None and not (isinstance(name, str) and name in methods):  # a list: TypeError unhashable
+            raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(methods))}")
+    check_options(method, options)
 
 
 def _cross_check_options(cfg) -> dict:
@@ -1055,7 +1049,7 @@ def check_pairs(
         ses = {dom: m[1] for dom, m in measured.items()}
         reasons = {dom: m[2] for dom, m in measured.items() if m[2]}
         q = dataclasses.asdict(reg.quality)
-        q.update(_preset_record(reg))
+        q.update(reg.run_record())
         observed = None
         if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
             observed = {
@@ -1080,29 +1074,6 @@ def check_pairs(
             epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
         out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok, ses, reasons or None))
     return tuple(out)
-
-
-def _preset_record(reg) -> dict:
-    """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
-    and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
-    the flow peers, which have no presets. Any method: ``clipped_fixed``, ``clipped_moving``, the
-    extreme pixels register() clipped before registering (only when it clipped any)."""
-    out = {}
-    from radiokit.register import BSPLINE_METHODS
-
-    if reg.method in BSPLINE_METHODS:
-        chosen = reg.options.get("auto")
-        out["preset"] = chosen.preset if chosen is not None else reg.options.get("preset", "default")
-        if chosen is not None:
-            out["preset_reason"] = chosen.reason
-    if "initial" in reg.options:
-        out["initial"] = reg.options["initial"]
-    out.update({f"clipped_{k}": v for k, v in reg.options.get("clipped", {}).items()})
-    second = reg.options.get("regularisation_check")
-    if second is not None:  # register(..., regularisation_check=True): the second run's preset and time
-        out["regularisation_check"] = second["preset"] + ("" if second["run"] else " (not run: already flagged)")
-        out["regularisation_check_seconds"] = second["seconds"]
-    return out
 
 
 def process(path, config: Config | None = None, *, out_dir=None, overwrite=False) -> Result:
