@@ -701,7 +701,7 @@ class _Watch:
         return None
 
     def replied(self, command: str, reply: str) -> None:
-        from acquisition.l8121 import _OFF_STATES, Command
+        from acquisition.l8121 import Command
 
         head = command.split(" ", 1)[0]
         for what, words in self.beam_settings.items():
@@ -725,7 +725,7 @@ class _Watch:
                 return
             if state.emitting:
                 self.may_be_on = True
-            elif state in _OFF_STATES:
+            elif state.confirms_off:
                 self.may_be_on = False
             # else B's ERROR (read as pre-heating, and also what a refused query looks like): the
             # driver never takes it as "off", so neither does the watchdog -- it stays as it was

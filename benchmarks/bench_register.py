@@ -42,9 +42,9 @@ from regdata import analytic_pair, block_mean, evaluate, score, sim_pair
 
 
 def configs():
-    from radiokit.register import METHODS, _load_methods, register  # noqa: F401 - fills METHODS
+    from radiokit.register import METHODS, load_methods, register  # noqa: F401 - fills METHODS
 
-    _load_methods()
+    load_methods()
     out = [
         ("rc", {}),
         ("rc-fast", {"preset": "fast"}),

@@ -145,9 +145,9 @@ def _row(meta, label, name, reg, truth, mask, ident, sec):
 
 
 def run(args):
-    from radiokit.register import _load_methods
+    from radiokit.register import load_methods
 
-    _load_methods()
+    load_methods()
     from radiokit.register._auto import EXTEND
 
     cfgs = dict(configs(), **{"rc-extend": {"extend": EXTEND}})

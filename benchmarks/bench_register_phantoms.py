@@ -401,13 +401,13 @@ def _options(name):
 
 def _cached_field(out, seed, name, fixed, moving, fresh=False):
     """``(displacement, info, seconds)`` of one configuration: from ``out/fields`` or registered now."""
-    from radiokit.register import METHODS, _check, _load_methods
+    from radiokit.register import METHODS, _check, load_methods
 
     path = out / "fields" / f"{seed}-{name}.npz"
     if path.exists() and not fresh:
         z = np.load(path, allow_pickle=False)
         return z["d"].astype(np.float32), json.loads(str(z["info"])), float(z["seconds"])
-    _load_methods()
+    load_methods()
     f, m, _ = _check(fixed, moving, None)
     t = time.perf_counter()
     d, info = METHODS["rc"](f, m, None, **_options(name))

@@ -113,7 +113,7 @@ def _old_modules(rev):
     methods they register over ours undone."""
     import radiokit.register as R
 
-    R._load_methods()
+    R.load_methods()
     saved = dict(R.METHODS)
     root = Path(__file__).resolve().parent.parent
     src = {
@@ -265,7 +265,7 @@ sys.path.insert(0, sys.argv[1])
 import numpy as np
 f, m = np.load(sys.argv[2]), np.load(sys.argv[3])
 import radiokit.register as R
-R._load_methods()
+R.load_methods()
 t0, c0 = time.perf_counter(), time.process_time()
 reg = R.register(f, m, "rc", preset=sys.argv[4])
 print(json.dumps([time.perf_counter() - t0, time.process_time() - c0, reg.quality.seconds]))

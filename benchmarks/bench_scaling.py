@@ -157,7 +157,7 @@ def child_mechanics(scale: float, n_states: int) -> dict:
 def child_truth(repeats: int) -> dict:
     """Truth for seed-breast's three pairs at 2240 x 2240: the fast path against the reference
     evaluation, interleaved; and their largest difference."""
-    from sim.lab import _body, project_state
+    from sim.lab import body_footprint, project_state
     from sim.mechanics import compress
     from sim.scene import load_scene
     from sim.truth import truth_displacement
@@ -165,7 +165,7 @@ def child_truth(repeats: int) -> dict:
     scene = load_scene("seed-breast")
     scene.detector.binning = 1
     states = compress(scene)
-    bodies = [_body(scene, project_state(scene, states[0].solver, s.displacement)[0]) for s in states]
+    bodies = [body_footprint(scene, project_state(scene, states[0].solver, s.displacement)[0]) for s in states]
     pairs = [(a, b) for b in range(len(states)) for a in range(b)]
     times = {"fast": [], "reference": []}
     diff = 0.0

@@ -750,15 +750,14 @@ REGISTER_BYTES_PER_PIXEL = 64
 
 def _check_register_memory(args, fixed) -> None:
     """Refuse, before it starts, a registration whose working memory is over the budget."""
-    from radiokit.io import memory_budget
-    from radiokit.io._budget import BUDGET_ENV, _human
+    from radiokit.io import BUDGET_ENV, human_bytes, memory_budget
 
     need, limit = REGISTER_BYTES_PER_PIXEL * fixed.size, memory_budget()
     if need > limit:
         raise ValueError(
             f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
-            f"needs about {_human(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
-            f"{_human(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
+            f"needs about {human_bytes(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
+            f"{human_bytes(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
             "images, cropped or binned beforehand (register has no crop of its own, and --roi narrows "
             "the score, not the images registered)"
         )
@@ -766,7 +765,6 @@ def _check_register_memory(args, fixed) -> None:
 
 def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord, atomic_path, write_registration
-    from radiokit.pipeline import _preset_record
     from radiokit.register import register, with_default_preset
 
     fixed, moving, mask = _register_inputs(args)
@@ -791,7 +789,7 @@ def cmd_register(args) -> int:
     registered = reg.warp(moving)
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
-    quality = vars(q) | _preset_record(reg)
+    quality = vars(q) | reg.run_record()
     write_registration(
         args.output,
         RegistrationRecord(
@@ -952,14 +950,13 @@ def _check_process_memory(files, cfg, at_once: int = 1) -> None:
     (:func:`radiokit.pipeline.refuse_over_memory`). ``at_once`` files processed at once (the local
     cluster's workers) share the budget: each was checked against all of it, so two workers could
     take twice the budget."""
-    from radiokit.io import memory_budget
-    from radiokit.io._budget import BUDGET_ENV, _human
+    from radiokit.io import BUDGET_ENV, human_bytes, memory_budget
     from radiokit.pipeline import refuse_over_memory
 
     limit = memory_budget()
     share = limit // max(1, at_once)
-    budget = f"the memory budget of {_human(limit)}" + (
-        f" shared by the {at_once} files processed at once ({_human(share)} each; --workers 1 takes one at a time)"
+    budget = f"the memory budget of {human_bytes(limit)}" + (
+        f" shared by the {at_once} files processed at once ({human_bytes(share)} each; --workers 1 takes one at a time)"
         if at_once > 1
         else ""
     )

@@ -43,6 +43,7 @@ __all__ = [
     "summary",
     "body_mask",
     "PAPER",
+    "NoBackgroundFits",
 ]
 
 #: The paper's numbers, what every table compares with: contrast improvement of about 1.4
@@ -226,7 +227,7 @@ class ROI:
             Pixel coordinates of the mm origin (default: the centre of pixel (0, 0)). ``(-0.5,
             -0.5)`` is the frame's top-left corner, the origin of ``radiokit process --mm`` and
             ``Config(roi_units="mm")``. Those take the edges ``(row0, row1, col0, col1)`` in mm
-            and round each to the nearest pixel edge; this rounds a size and a centre, so the two
+            and round each to the nearest pixel edge (:meth:`from_mm_edges`); this rounds a size and a centre, so the two
             can differ by a pixel (a 2.34 mm side is 23 pixels here, 23 or 24 there by where it
             sits).
 
@@ -239,6 +240,18 @@ class ROI:
         orr, occ = _pair(origin_rc, "origin_rc")
         px = (_mm_to_px(cr, pr), _mm_to_px(cc, pc)), (_mm_to_px(sr, pr), _mm_to_px(sc, pc))
         return cls.from_center((orr + px[0][0], occ + px[0][1]), px[1])
+
+    @classmethod
+    def from_mm_edges(cls, edges_mm, pixel_size_mm) -> ROI:
+        """The rectangle whose edges ``(row0, row1, col0, col1)`` lie these millimetres from the
+        frame's top-left corner, as ``radiokit process --mm`` and ``Config(roi_units="mm")`` take
+        it: each edge goes to the nearest pixel edge, a tie half up (after snapping to 1e-9 pixel,
+        so that 0.35 mm at 0.1 mm is the tie 3.5, not 3.4999999999999996). ``pixel_size_mm``: a
+        number, or the (row, col) pitch. A ValueError where the rectangle rounds to nothing.
+        """
+        pr, pc = _pair(pixel_size_mm, "pixel_size_mm", positive=True)
+        r0, r1, c0, c1 = edges_mm
+        return cls(*(_round_half_up(_mm_to_px(v, p)) for v, p in ((r0, pr), (r1, pr), (c0, pc), (c1, pc))))
 
     def to_mm(self, pixel_size_mm, origin_rc=(0.0, 0.0)) -> tuple[tuple[float, float], tuple[float, float]]:
         """``(center_mm, size_mm)`` such that ``ROI.from_mm(*roi.to_mm(p, o), p, o) == roi``."""
@@ -1433,8 +1446,10 @@ def find_rois(
     Raises
     ------
     ValueError
-        If no inclusion is found, the mask is empty, or no background rectangle fits (the line
-        says why for each side).
+        If no inclusion is found or the mask is empty.
+    NoBackgroundFits
+        A ValueError, if no background rectangle fits beside the inclusion found (the line says
+        why for each side; the exception holds that inclusion).
 
     Notes
     -----
@@ -1494,17 +1509,23 @@ def find_rois(
     try:
         background = _first_fitting(candidates, img.shape, body, region, others, f"{h}x{w}", f"{g_c} px", extent)
     except ValueError as exc:
-        raise _NoBackgroundFits(str(exc), inclusion) from None
+        raise NoBackgroundFits(str(exc), inclusion) from None
     return inclusion, background
 
 
-class _NoBackgroundFits(ValueError):
-    """find_rois's refusal where the inclusion was found and only its background does not fit: the
-    inclusion rides along for a caller holding a background of its own (``radiokit process
-    --background`` alone was refused "give both ROIs" though detection had found the inclusion)."""
+class NoBackgroundFits(ValueError):
+    """:func:`find_rois`'s refusal where the inclusion was found and only its background does not
+    fit: ``inclusion``, the ROI found, rides along for a caller holding a background of its own
+    (``radiokit process --background`` alone was refused "give both ROIs" though detection had
+    found the inclusion), and ``reason``, the message without its closing :data:`ADVICE` (which
+    names find_rois's keywords), for a caller whose user has other means to end it with."""
 
-    def __init__(self, message: str, inclusion: ROI):
-        super().__init__(message)
+    #: what the message ends with: find_rois's keywords that would let a background fit
+    ADVICE = "pass a smaller gap or background_size, body_mask, or the ROIs"
+
+    def __init__(self, reason: str, inclusion: ROI):
+        super().__init__(f"{reason}; {self.ADVICE}")
+        self.reason = reason
         self.inclusion = inclusion
 
 
@@ -1525,14 +1546,10 @@ def _bool_mask(mask, shape, name) -> np.ndarray:
     return arr
 
 
-#: the end of find_rois's refusal when no background fits: its keywords (radiokit.pipeline says
-#: what the command line offers instead)
-_BACKGROUND_ADVICE = "pass a smaller gap or background_size, body_mask, or the ROIs"
-
-
 def _first_fitting(candidates: dict, shape, body, region, others, size: str, gap: str, extent) -> ROI:
     """The first candidate background ROI inside the image and the body, clear of the inclusion
-    and of the ``others`` detection found (:class:`_Neighbours`; None: the inclusion was given)."""
+    and of the ``others`` detection found (:class:`_Neighbours`; None: the inclusion was given);
+    else a ValueError saying why each was refused (find_rois ends it with its advice)."""
     rows, cols = shape
     tried = []
     for side, roi in candidates.items():
@@ -1546,6 +1563,4 @@ def _first_fitting(candidates: dict, shape, body, region, others, size: str, gap
             tried.append(f"{side}: overlaps another structure at ({near[0][0]:.0f}, {near[0][1]:.0f})")
         else:
             return roi
-    raise ValueError(
-        f"no {size} background ROI fits {gap} beside the inclusion {extent} ({'; '.join(tried)}); {_BACKGROUND_ADVICE}"
-    )
+    raise ValueError(f"no {size} background ROI fits {gap} beside the inclusion {extent} ({'; '.join(tried)})")

@@ -71,7 +71,7 @@ from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
-from radiokit.measure import _BACKGROUND_ADVICE, PAPER, ROI, _mm_to_px, _NoBackgroundFits, _round_half_up
+from radiokit.measure import PAPER, ROI, NoBackgroundFits
 from radiokit.results import Bound, DomainMeasures, Enhancement, Images, KMeasure, PairResult, Results, Rois, k_label
 
 __all__ = [
@@ -236,19 +236,13 @@ def _check_methods(method, cross_check, options) -> None:
     not take (a B-spline ``preset`` given to a peer) and a B-spline option's value of the wrong
     kind or range, as ``ValueError`` in one line: found only at the first registration they cost
     the correction, and a peer's ``TypeError`` a traceback."""
-    from radiokit.register import BSPLINE_METHODS, METHODS, _check_option_names, _load_methods
-    from radiokit.register._bspline import check_option_values
+    from radiokit.register import check_options, load_methods
 
-    _load_methods()
+    methods = load_methods()
     for what, name in (("method", method), ("cross_check", cross_check)):
-        if name is not None and not (isinstance(name, str) and name in METHODS):  # a list: TypeError unhashable
-            raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(METHODS))}")
-    try:
-        _check_option_names(method, options)
-    except TypeError as exc:
-        raise ValueError(str(exc)) from None
-    if method in BSPLINE_METHODS:
-        check_option_values(options)
+        if name is not None and not (isinstance(name, str) and name in methods):  # a list: TypeError unhashable
+            raise ValueError(f"{what}={name!r}: unknown registration method; available: {', '.join(sorted(methods))}")
+    check_options(method, options)
 
 
 def _cross_check_options(cfg) -> dict:
@@ -368,7 +362,10 @@ def _roi(value, units, pixel_size_mm, name):
     if units == "mm":
         # from the frame's corner, half up as ROI.from_mm: round() took halves to even, so a
         # rectangle 3 pixels wide on half-pixel edges became 2 or 4 by where it sat (review s42api)
-        return _checked_roi(what, units, *(_round_half_up(_mm_to_px(v, pixel_size_mm)) for v in (r0, r1, c0, c1)))
+        try:
+            return ROI.from_mm_edges((r0, r1, c0, c1), pixel_size_mm)
+        except ValueError as exc:
+            raise ValueError(f"{what} ({units}): {exc}") from None
     # pixels: a fractional one was rounded without a word; mm are rounded to pixels (README). A
     # bound computed in floating point (0.1 * 300 = 30.000000000000004) is that whole number: the
     # tolerance is far above float64's rounding and far below any real fraction
@@ -908,10 +905,12 @@ def choose_rois(steps: Steps, cfg: Config, truth=None) -> RoiChoice:
         try:
             auto_inc, auto_bg = find_rois(ref, inclusion_mask=mask, pixel_size_mm=steps.pixel_size_mm)
         except ValueError as exc:
-            if inc is None and bg is not None and isinstance(exc, _NoBackgroundFits):
+            if inc is None and bg is not None and isinstance(exc, NoBackgroundFits):
                 auto_inc, auto_bg = exc.inclusion, None  # the inclusion was found; only its background was missing
             elif inc is None:  # find_rois's advice names its keywords, which process does not take (review s41proc)
-                raise ValueError(str(exc).replace(_BACKGROUND_ADVICE, _BOTH_ROIS)) from None
+                raise ValueError(
+                    f"{exc.reason}; {_BOTH_ROIS}" if isinstance(exc, NoBackgroundFits) else str(exc)
+                ) from None
             else:
                 auto_inc = auto_bg = None
         if bg is None and inc is not None:
@@ -1050,7 +1049,7 @@ def check_pairs(
         ses = {dom: m[1] for dom, m in measured.items()}
         reasons = {dom: m[2] for dom, m in measured.items() if m[2]}
         q = dataclasses.asdict(reg.quality)
-        q.update(_preset_record(reg))
+        q.update(reg.run_record())
         observed = None
         if reg.confidence is not None:  # is the motion observed where the paper's numbers are measured?
             observed = {
@@ -1075,29 +1074,6 @@ def check_pairs(
             epe.update(zip(("epe_roi_median", "epe_roi_p95"), _epe(reg.displacement, tf, rois_mask)))
         out.append(PairResult(a, b, reg.method, q, ratios, observed, p.cross_check, epe, rois_ok, ses, reasons or None))
     return tuple(out)
-
-
-def _preset_record(reg) -> dict:
-    """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it returned)
-    and ``preset_reason`` (auto's why), ``initial`` (what the field started from); nothing for
-    the flow peers, which have no presets. Any method: ``clipped_fixed``, ``clipped_moving``, the
-    extreme pixels register() clipped before registering (only when it clipped any)."""
-    out = {}
-    from radiokit.register import BSPLINE_METHODS
-
-    if reg.method in BSPLINE_METHODS:
-        chosen = reg.options.get("auto")
-        out["preset"] = chosen.preset if chosen is not None else reg.options.get("preset", "default")
-        if chosen is not None:
-            out["preset_reason"] = chosen.reason
-    if "initial" in reg.options:
-        out["initial"] = reg.options["initial"]
-    out.update({f"clipped_{k}": v for k, v in reg.options.get("clipped", {}).items()})
-    second = reg.options.get("regularisation_check")
-    if second is not None:  # register(..., regularisation_check=True): the second run's preset and time
-        out["regularisation_check"] = second["preset"] + ("" if second["run"] else " (not run: already flagged)")
-        out["regularisation_check_seconds"] = second["seconds"]
-    return out
 
 
 def process(path, config: Config | None = None, *, out_dir=None, overwrite=False) -> Result:
@@ -1399,8 +1375,7 @@ PROCESS_BYTES_PER_STEP_PIXEL = 45
 def _process_need(path, cfg) -> tuple[int, str] | None:
     """The memory ``process`` needs for ``path`` (bytes) and how it was reckoned, from the file's
     index (no frame read); None for a file that cannot be opened (process says why, in its order)."""
-    from radiokit.io import C7942_PIXEL_SIZE_MM, open_frames
-    from radiokit.io._budget import _human
+    from radiokit.io import C7942_PIXEL_SIZE_MM, human_bytes, open_frames
 
     try:
         with open_frames(path) as src:
@@ -1417,7 +1392,7 @@ def _process_need(path, cfg) -> tuple[int, str] | None:
     per_pixel = PROCESS_BYTES_PER_PIXEL + PROCESS_BYTES_PER_STEP_PIXEL * more
     need = int(per_pixel * rows * cols + PROCESS_BYTES_PER_KEPT_PIXEL * kept)
     words = (
-        f"its {rows}x{cols} frames of {n_steps} steps need about {_human(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
+        f"its {rows}x{cols} frames of {n_steps} steps need about {human_bytes(need)} ({PROCESS_BYTES_PER_PIXEL} bytes a pixel"
         + (f", {PROCESS_BYTES_PER_STEP_PIXEL} more for each step beyond {PROCESS_MEASURED_STEPS}" if more else "")
         + f", {PROCESS_BYTES_PER_KEPT_PIXEL} more a pixel of the {int(min(side, rows))}x{int(min(side, cols))} crop kept)"
     )
@@ -1499,7 +1474,8 @@ def _memory_shares(client) -> dict:
     or half its available memory; a budget given to this process stands for every host) divided
     among the files the host's workers process at once (their Dask threads), and no more than the
     worker's own Dask ``memory_limit`` divided among its threads (its nanny stops it past that)."""
-    from radiokit.io._budget import _human, explicit_budget, host_budget
+    from radiokit.io import human_bytes
+    from radiokit.io._budget import explicit_budget, host_budget
 
     info = _all_workers(client)
     given = host_budget() if explicit_budget() else None
@@ -1516,16 +1492,16 @@ def _memory_shares(client) -> dict:
         budget = given if given is not None else min(seen) if seen else host_budget()
         for a in addrs:
             share = budget // at_once
-            words = f"the memory budget of {_human(budget)} on host {host}" + (
-                f", shared by the {at_once} files its Dask workers process at once ({_human(share)} each)"
+            words = f"the memory budget of {human_bytes(budget)} on host {host}" + (
+                f", shared by the {at_once} files its Dask workers process at once ({human_bytes(share)} each)"
                 if at_once > 1
                 else ""
             )
             n, limit = max(1, int(info[a]["nthreads"])), int(info[a].get("memory_limit") or 0)
             if limit and limit // n < share:
                 share = limit // n
-                words = f"Dask's memory_limit of {_human(limit)} for worker {a}" + (
-                    f", shared by the {n} files it processes at once ({_human(share)} each)" if n > 1 else ""
+                words = f"Dask's memory_limit of {human_bytes(limit)} for worker {a}" + (
+                    f", shared by the {n} files it processes at once ({human_bytes(share)} each)" if n > 1 else ""
                 )
             shares[a] = (share, words)
     return shares
@@ -1552,7 +1528,7 @@ def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: 
     processed while the file's own images are held (the control's record is made last), so the two
     are charged together, and the control alone first, named ``control_name`` (``--control `` on
     the command line). A file that cannot be opened is passed: its own error is said in its turn."""
-    from radiokit.io._budget import _human
+    from radiokit.io import human_bytes
 
     control = _process_need(cfg.control, cfg) if cfg.control else None
     if control is not None and control[0] > share:
@@ -1560,7 +1536,7 @@ def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: 
     for path in paths:
         mine = _process_need(path, cfg)
         if mine is not None and mine[0] + (control[0] if control else 0) > share:
-            beside = f", and its control {cfg.control} {_human(control[0])} beside it" if control else ""
+            beside = f", and its control {cfg.control} {human_bytes(control[0])} beside it" if control else ""
             raise ValueError(f"{path}: processing {mine[1]}{beside}, over {over}")
 
 
@@ -1626,7 +1602,7 @@ def process_many(
     except ImportError:
         raise ImportError("processing many files needs Dask: pip install 'radiokit[parallel]'") from None
     from radiokit._threads import cores
-    from radiokit.io._atomic import _missing_folders, _remove_stale, _restore_interrupted, remove_empty_folders
+    from radiokit.io import missing_folders, recover_interrupted, remove_empty_folders
     from radiokit.progress import tqdm
 
     if out_root is not None:
@@ -1654,7 +1630,7 @@ def process_many(
         shares = {a: dataclasses.replace(s, memory=memory[a][0]) if a in memory else s for a, s in shares.items()}
         # made once connected (a scheduler that timed out left `-o`'s new folder behind, empty),
         # and here, not by the workers: one that fails must not remove it under the others
-        made = _missing_folders(out_root) if out_root is not None else []
+        made = missing_folders(out_root) if out_root is not None else []
         if made:
             Path(out_root).mkdir(parents=True)
         client.run(_limit_worker, shares)
@@ -1689,9 +1665,8 @@ def process_many(
                 # a worker stopped mid-file (its nanny kills it after a grace period) leaves its
                 # results folder's temporary: removed once its process is gone, as the next run would
                 for out in outs:
-                    _remove_stale(out, folder=True)
                     with contextlib.suppress(OSError):  # one stopped while its old folder was aside
-                        _restore_interrupted(out)
+                        recover_interrupted(out)
             remove_empty_folders(made)  # every file failed: no empty folder left behind
             restore()
 
@@ -1704,9 +1679,9 @@ def _process_limits():
     import cv2
     from threadpoolctl import ThreadpoolController
 
-    from radiokit.io import _budget
+    from radiokit.io._budget import memory_share, set_share
 
-    threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), _budget._share, cv2.getNumThreads()
+    threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), memory_share(), cv2.getNumThreads()
     libraries = [(lib, lib.num_threads) for lib in ThreadpoolController().lib_controllers]
 
     def restore():
@@ -1714,7 +1689,7 @@ def _process_limits():
             os.environ.pop("RADIOKIT_THREADS", None)
         else:
             os.environ["RADIOKIT_THREADS"] = threads
-        _budget.set_share(share)
+        set_share(share)
         cv2.setNumThreads(cv_threads)
         for lib, n in libraries:
             with contextlib.suppress(Exception):

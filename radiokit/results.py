@@ -207,7 +207,7 @@ class PairQuality(dict):
     ok: bool | None
     reason: str | None
     note: str | None
-    # what the pipeline adds (radiokit.pipeline._preset_record)
+    # what the pipeline adds (radiokit.register.Registration.run_record)
     preset: str | None  #: a B-spline method's preset (auto's choice)
     preset_reason: str | None  #: why auto chose it
     initial: str | None  #: what the field started from

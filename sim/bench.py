@@ -265,7 +265,7 @@ class VirtualBench:
         step before the last onto the last, the paper's pair -- each pair costs seconds at full
         resolution). Returns the timings."""
         from radiokit.io import write_simulation
-        from sim.lab import _body, truth_record
+        from sim.lab import body_footprint, truth_record
         from sim.truth import truth_displacement
 
         ratios = self.prepared_ratios
@@ -279,7 +279,9 @@ class VirtualBench:
         t_proj = time.perf_counter() - t
         t = time.perf_counter()
         fields = {
-            (a, b): truth_displacement(self.scene, states[b - 1], states[a - 1], body=_body(self.scene, lis[b - 1]))
+            (a, b): truth_displacement(
+                self.scene, states[b - 1], states[a - 1], body=body_footprint(self.scene, lis[b - 1])
+            )
             for a, b in pairs
         }
         t_truth = time.perf_counter() - t

@@ -20,7 +20,7 @@ import numpy as np
 from sim.detector import PanelModel
 from sim.scene import Compression, Scene, anode_for, load_scene
 
-__all__ = ["simulate_experiment", "project_state", "make_panel", "open_beam_counts", "truth_record"]
+__all__ = ["simulate_experiment", "project_state", "body_footprint", "make_panel", "open_beam_counts", "truth_record"]
 
 
 def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, np.ndarray]:
@@ -58,9 +58,10 @@ def project_state(scene: Scene, solver, displacement=None) -> tuple[np.ndarray, 
     return line_integral, mask
 
 
-def _body(scene: Scene, line_integral):
+def body_footprint(scene: Scene, line_integral):
     """Where the body covers the detector, from a state's projection (None, to be rendered,
-    when some material does not attenuate)."""
+    when some material does not attenuate): the ``body`` :func:`sim.truth.truth_displacement`
+    takes, as :func:`simulate_experiment` and ``sim.bench`` pass it."""
     mus = [scene.body.material.attenuation_per_mm] + [inc.material.attenuation_per_mm for inc in scene.inclusions]
     return line_integral > 0 if min(mus) > 0 else None
 
@@ -170,7 +171,7 @@ def simulate_experiment(
     for b in range(len(states)):
         for a in range(b):
             fields[(a + 1, b + 1)] = truth_displacement(
-                scene, states[b], states[a], body=_body(scene, line_integrals[b])
+                scene, states[b], states[a], body=body_footprint(scene, line_integrals[b])
             )
     t_truth = time.perf_counter() - t
 

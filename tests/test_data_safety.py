@@ -1015,6 +1015,27 @@ def _left_aside(out: Path, monkeypatch) -> Path:
     return aside
 
 
+def test_recover_interrupted_clears_what_a_killed_writer_left_of_a_results_folder(tmp_path, monkeypatch):
+    """radiokit.io's public step for a caller whose workers were killed mid-write (process_many):
+    the killed writer's temporary is removed, the previous results it had put aside are back at
+    the name, a live writer's temporary (this process's) stays, and a folder with nothing left is
+    untouched."""
+    from radiokit.io import recover_interrupted
+    from radiokit.io._atomic import _temporary_name
+
+    out = tmp_path / "res"
+    aside = _left_aside(out, monkeypatch)  # the name missing: killed between the two renames
+    before = tree_sha(aside)
+    host = socket.gethostname().split(".")[0]
+    killed = tmp_path / f".res.tmp-{host}-{_dead_pid()}-0123abcd"
+    live = _temporary_name(out, folder=True)
+    killed.mkdir(), live.mkdir()
+    recover_interrupted(out)
+    assert tree_sha(out) == before and not aside.exists() and not killed.exists() and live.is_dir()
+    recover_interrupted(tmp_path / "never-written")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["res", live.name])
+
+
 def test_a_results_folder_kept_aside_is_pointed_to_by_the_link_the_user_named(tmp_path, monkeypatch):
     """s39 review (LOW): ``-o latest``, a link to ``res``: the warning of results left aside
     named ``res``, which the user did not type, and so did the refusal of two left aside. Both

@@ -321,6 +321,32 @@ def test_roi_from_mm_hand_values():
     assert center_mm == pytest.approx((1.0, -2.0)) and size_mm == pytest.approx((0.5, 0.3))
 
 
+def test_roi_from_mm_edges_rounds_each_edge_half_up():
+    """Edges in mm from the frame's corner (``radiokit process --mm``): an edge typed on a half
+    pixel goes half up however its division rounds (0.35 / 0.1 is 3.4999999999999996), so a
+    rectangle's width does not depend on where it sits; whole-pixel edges give what
+    :meth:`ROI.from_mm` gives from the corner for the same rectangle."""
+    assert ROI.from_mm_edges((0.35, 0.65, 0.45, 0.75), 0.1) == ROI(4, 7, 5, 8)
+    assert ROI.from_mm_edges((0.35, 0.65, 0.45, 0.75), (0.1, 0.2)) == ROI(4, 7, 2, 4)  # 2.25 -> 2, 3.75 -> 4
+    edges = (1.0, 1.5, 2.0, 2.3)
+    assert ROI.from_mm_edges(edges, 0.1) == ROI.from_mm((1.25, 2.15), (0.5, 0.3), 0.1, (-0.5, -0.5))
+    with pytest.raises(ValueError, match="empty"):
+        ROI.from_mm_edges((0.1, 0.12, 0.0, 1.0), 0.1)
+
+
+def test_find_rois_refusal_of_a_background_carries_the_inclusion_found():
+    """Where only the background does not fit, :class:`NoBackgroundFits` holds the inclusion found
+    and the reason without find_rois's advice, for a caller with ROIs of its own to offer."""
+    from radiokit.measure import NoBackgroundFits
+
+    img, _, _ = _dome_with_blob()
+    with pytest.raises(NoBackgroundFits) as refused:
+        find_rois(img, gap=200)
+    exc = refused.value
+    assert exc.inclusion.contains((70, 96)) and str(exc) == f"{exc.reason}; {NoBackgroundFits.ADVICE}"
+    assert exc.reason.startswith("no ") and "background_size" not in exc.reason
+
+
 def test_roi_geometry():
     roi = ROI(2, 6, 10, 13)
     assert roi.shape == (4, 3) and roi.center == (3.5, 11.0)

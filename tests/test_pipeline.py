@@ -450,7 +450,7 @@ def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
     not now refuses the run, in one line naming the file, before any work."""
     from dask.distributed import LocalCluster
 
-    from radiokit.io._budget import _human
+    from radiokit.io import human_bytes
     from radiokit.pipeline import process_many
 
     paths, budget, cfg = _two_files_one_share_fits(tmp_path, monkeypatch)
@@ -460,8 +460,10 @@ def test_the_workers_of_one_host_share_its_memory_budget(tmp_path, monkeypatch):
             process_many(paths, cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
     message = str(err.value)
     assert "\n" not in message and message.startswith(f"{paths[0]}: "), message
-    assert f"memory budget of {_human(budget)}" in message, message
-    assert f"shared by the 2 files its Dask workers process at once ({_human(budget // 2)} each" in message, message
+    assert f"memory budget of {human_bytes(budget)}" in message, message
+    assert f"shared by the 2 files its Dask workers process at once ({human_bytes(budget // 2)} each" in message, (
+        message
+    )
     assert not (tmp_path / "out").exists()
 
 
@@ -496,7 +498,7 @@ def test_a_workers_dask_memory_limit_bounds_its_share(tmp_path, monkeypatch):
     import dask
     from dask.distributed import LocalCluster
 
-    from radiokit.io._budget import _human
+    from radiokit.io import human_bytes
     from radiokit.pipeline import Config, process_many
 
     path = tmp_path / "a.h5"
@@ -517,14 +519,14 @@ def test_a_workers_dask_memory_limit_bounds_its_share(tmp_path, monkeypatch):
             )
     message = str(err.value)
     assert "\n" not in message and message.startswith(f"{path}: "), message
-    assert f"memory_limit of {_human(limit)}" in message, message
-    assert f"shared by the 2 files it processes at once ({_human(limit // 2)} each" in message, message
+    assert f"memory_limit of {human_bytes(limit)}" in message, message
+    assert f"shared by the 2 files it processes at once ({human_bytes(limit // 2)} each" in message, message
 
 
 def test_a_local_clusters_workers_share_the_memory_budget(tmp_path, monkeypatch):
     """process_many on its own local cluster checked no file's memory either (only the command
     line did): two files, each within the budget, processed at once, over it together."""
-    from radiokit.io._budget import _human
+    from radiokit.io import human_bytes
     from radiokit.pipeline import process_many
 
     paths, budget, cfg = _two_files_one_share_fits(tmp_path, monkeypatch)
@@ -532,7 +534,7 @@ def test_a_local_clusters_workers_share_the_memory_budget(tmp_path, monkeypatch)
         process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
     message = str(err.value)
     assert "\n" not in message and message.startswith(f"{paths[0]}: "), message
-    assert f"({_human(budget // 2)} each" in message, message
+    assert f"({human_bytes(budget // 2)} each" in message, message
     assert not (tmp_path / "out").exists()
 
 

@@ -2599,14 +2599,34 @@ def test_cli_register_says_what_it_clipped(tmp_path, capsys):
 
 def test_process_records_what_register_clipped():
     """``radiokit process``'s results.json carries the clipped counts per pair as ``radiokit
-    register``'s file does (both through ``pipeline._preset_record``); none when nothing was."""
-    from radiokit.pipeline import _preset_record
+    register``'s file does (both through ``Registration.run_record``); none when nothing was."""
     from radiokit.register import Quality, Registration
 
     field = np.zeros((2, 8, 8), np.float32)
     reg = Registration(field, "dis", Quality(), {"clipped": {"fixed": 3, "moving": 0}})
-    assert _preset_record(reg) == {"clipped_fixed": 3, "clipped_moving": 0}
-    assert "clipped_fixed" not in _preset_record(Registration(field, "rc", Quality(), {"preset": "fast"}))
+    assert reg.run_record() == {"clipped_fixed": 3, "clipped_moving": 0}
+    assert Registration(field, "rc", Quality(), {"preset": "fast"}).run_record() == {"preset": "fast"}
+
+
+@pytest.mark.parametrize(
+    "method, options, match",
+    [
+        ("rc", {"spacng": 8}, "unknown option 'spacng' for method 'rc'; its options: .*spacing"),
+        ("rc", {"spacing": "8"}, "spacing"),
+        ("rc", {"preset": "fastest"}, "preset 'fastest': expected one of"),
+        ("dis", {"spacing": 8}, "unknown option 'spacing' for method 'dis'; its options: .*patch_size"),
+    ],
+)
+def test_check_options_refuses_before_any_work_in_one_line(method, options, match):
+    """The check a caller runs on a configuration before its first registration (the pipeline's
+    Config): a ValueError each, where register() raises Python's TypeError for an unknown name."""
+    from radiokit.register import check_options, load_methods
+
+    assert {"rc", "dis"} <= set(load_methods())
+    with pytest.raises(ValueError, match=match) as refused:
+        check_options(method, options)
+    assert "\n" not in str(refused.value)
+    check_options(method, {})
 
 
 @pytest.mark.parametrize(

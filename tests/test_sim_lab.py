@@ -123,11 +123,11 @@ def test_fast_truth_equals_the_reference_evaluation(model, kind, factor):
     evaluation kept as the reference: equal to 0.01 px (the acceptance), measured 1e-7 px."""
     from dataclasses import replace
 
-    from sim.lab import _body, project_state
+    from sim.lab import body_footprint, project_state
 
     side, (s15, s25) = _cylinder_side(model)
     scene = replace(side, beam=Beam(kind, "z"))
-    body = _body(scene, project_state(scene, s25.solver, s25.displacement)[0])
+    body = body_footprint(scene, project_state(scene, s25.solver, s25.displacement)[0])
     fast = truth_displacement(scene, s25, s15, factor=factor, body=body)
     ref = truth_displacement(scene, s25, s15, factor=factor, _reference=True)
     assert np.abs(ref).max() > 3  # pixels: a real motion

@@ -25,8 +25,11 @@ from radiokit.io._atomic import (
     check_free_space,
     check_output,
     folder_marker,
+    missing_folders,
+    recover_interrupted,
+    remove_empty_folders,
 )
-from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, memory_budget, parse_size
+from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, human_bytes, memory_budget, parse_size
 from radiokit.io._experiment import (
     C7942_PIXEL_SIZE_MM,
     PIXEL_SIZE_RANGE_M,
@@ -84,10 +87,14 @@ __all__ = [
     "FileTooLargeError",
     "RESULTS_MARKER",
     "folder_marker",
+    "missing_folders",
+    "remove_empty_folders",
+    "recover_interrupted",
     "memory_budget",
     "check_budget",
     "check_proportion",
     "parse_size",
+    "human_bytes",
     "BUDGET_ENV",
     "ExperimentProgress",
     "read_progress",

@@ -655,6 +655,18 @@ def _restore_interrupted(path: Path, named: Path | None = None) -> None:
         )
 
 
+def recover_interrupted(folder) -> None:
+    """Clear what a writer of the results folder ``folder`` left when it was killed (its process
+    gone): remove the temporary it was building, and put back at the name the previous results it
+    had renamed aside, where the name is missing (an :class:`OutputError` where two or more are
+    aside: which one is the user's latest is not known). What the next :func:`atomic_dir` to
+    ``folder`` does first, for a caller whose writers were killed (``radiokit.pipeline.process_many``'s
+    Dask workers, stopped mid-file)."""
+    folder = Path(folder)
+    _remove_stale(folder, folder=True)
+    _restore_interrupted(folder)
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -799,7 +811,7 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
     path = check_output(path, overwrite=overwrite, inputs=inputs)
     if size_hint:
         check_free_space(path, size_hint)
-    made = _missing_folders(path.parent)
+    made = missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(path)
     tmp = _temporary_name(path)
@@ -829,7 +841,7 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         raise
 
 
-def _missing_folders(folder: Path) -> list[Path]:
+def missing_folders(folder: Path) -> list[Path]:
     """``folder`` and those of its parents that do not exist yet, deepest first: what making it
     creates, and what a failed run removes again (:func:`remove_empty_folders`)."""
     out = []
@@ -895,7 +907,7 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
             f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...); "
             "it is never replaced: move them or choose a new folder",
         )
-    made = _missing_folders(path.parent)
+    made = missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(path, folder=True)
     tmp = _temporary_name(path, folder=True)

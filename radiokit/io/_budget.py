@@ -179,6 +179,12 @@ def set_share(nbytes: int | None) -> None:
     _share = None if nbytes is None else int(nbytes)
 
 
+def memory_share() -> int | None:
+    """This process's share as :func:`set_share` left it (None: no share), for a caller that puts
+    it back afterwards."""
+    return _share
+
+
 def host_budget(budget=None) -> int:
     """The budget in bytes before any worker's share: ``budget`` if given (bytes or a size string),
     else the environment variable :data:`BUDGET_ENV`, else :data:`DEFAULT_FRACTION` of the available
@@ -199,7 +205,13 @@ def memory_budget(budget=None) -> int:
     return limit if budget is not None or _share is None else min(limit, _share)
 
 
-def _human(n: int) -> str:
+def human_bytes(n: int) -> str:
+    """``n`` bytes as the messages about memory write them: whole bytes below 1 KiB, else one
+    decimal of the largest binary unit it reaches (up to TiB).
+
+    >>> human_bytes(512), human_bytes(1536), human_bytes(3 * 2**30)
+    ('512 bytes', '1.5 KiB', '3.0 GiB')
+    """
     for unit in ("bytes", "KiB", "MiB", "GiB", "TiB"):
         if n < 1024 or unit == "TiB":
             return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
@@ -213,8 +225,8 @@ def check_budget(path, nbytes: int, what: str, budget=None) -> None:
     if nbytes > limit:
         raise FormatError(
             path,
-            f"{what} would need {_human(int(nbytes))}, over the memory budget of "
-            f"{_human(limit)} (a corrupt header, or raise {BUDGET_ENV})",
+            f"{what} would need {human_bytes(int(nbytes))}, over the memory budget of "
+            f"{human_bytes(limit)} (a corrupt header, or raise {BUDGET_ENV})",
         )
 
 
@@ -262,7 +274,7 @@ def check_proportion(path, what: str, decoded: int, frame: int, stored: int, cod
         return
     raise FormatError(
         path,
-        f"{what} would decode to {_human(decoded)} from {stored} bytes of {codec} data "
+        f"{what} would decode to {human_bytes(decoded)} from {stored} bytes of {codec} data "
         f"(1:{decoded // stored}): past 1:{BOMB_RATIO} frames are nearly constant or sparse (noisy ones "
         "compress 1:1.2-1:19, with 1 % of pixels hit 1:78-1:113, with 0.2 % up to 1:385), and so much of "
         f"them is taken for a decompression bomb; to read it all the same, give the memory it may use: "

@@ -16,7 +16,7 @@ import mmap
 import struct
 
 from radiokit.errors import FormatError
-from radiokit.io._budget import BUDGET_ENV, _human, memory_budget
+from radiokit.io._budget import BUDGET_ENV, human_bytes, memory_budget
 
 __all__ = ["check_tiff_pages", "TIFF_BYTES_PER_PAGE", "TIFF_BYTES_PER_TAG"]
 
@@ -84,11 +84,11 @@ def check_tiff_pages(path, budget=None, spent=0, offsets: list | None = None) ->
             tags += n_tags
             cost += TIFF_BYTES_PER_PAGE + TIFF_BYTES_PER_TAG * n_tags
             if cost > limit:
-                alone = "alone" if not spent else f"with the {_human(spent)} of its set's files before it"
+                alone = "alone" if not spent else f"with the {human_bytes(spent)} of its set's files before it"
                 raise FormatError(
                     path,
                     f"TIFF of at least {len(seen)} pages ({tags / len(seen):.3g} tags each): open, its pages {alone} "
-                    f"would take more than the memory budget of {_human(limit)} ({TIFF_BYTES_PER_PAGE} bytes a "
+                    f"would take more than the memory budget of {human_bytes(limit)} ({TIFF_BYTES_PER_PAGE} bytes a "
                     f"page, {TIFF_BYTES_PER_TAG} a tag; a corrupt file, or raise {BUDGET_ENV})",
                 )
             offset = struct.unpack_from(next_fmt, m, end)[0]

@@ -49,6 +49,8 @@ __all__ = [
     "warp",
     "jacobian_determinant",
     "roi_observed",
+    "load_methods",
+    "check_options",
 ]
 
 #: the methods on the B-spline transform, which take rc's presets (``preset=``)
@@ -172,6 +174,29 @@ class Registration:
             )
         return warp(image, self.displacement, order=order)
 
+    def run_record(self) -> dict:
+        """What a B-spline registration ran: ``preset`` (with ``preset="auto"``, the one it
+        returned) and ``preset_reason`` (auto's why), ``initial`` (what the field started from);
+        nothing for the flow peers, which have no presets. Any method: ``clipped_fixed``,
+        ``clipped_moving``, the extreme pixels register() clipped before registering (only when
+        it clipped any); ``regularisation_check`` and its seconds where one was asked for. Written
+        beside :class:`Quality` by ``radiokit register`` and ``radiokit process``, so that the file
+        alone says how to reproduce the field."""
+        out = {}
+        if self.method in BSPLINE_METHODS:
+            chosen = self.options.get("auto")
+            out["preset"] = chosen.preset if chosen is not None else self.options.get("preset", "default")
+            if chosen is not None:
+                out["preset_reason"] = chosen.reason
+        if "initial" in self.options:
+            out["initial"] = self.options["initial"]
+        out.update({f"clipped_{k}": v for k, v in self.options.get("clipped", {}).items()})
+        second = self.options.get("regularisation_check")
+        if second is not None:  # register(..., regularisation_check=True): the second run's preset and time
+            out["regularisation_check"] = second["preset"] + ("" if second["run"] else " (not run: already flagged)")
+            out["regularisation_check_seconds"] = second["seconds"]
+        return out
+
 
 METHODS: dict = {}  # name -> function(fixed, moving, mask, **options) -> (displacement, info dict)
 
@@ -187,8 +212,10 @@ def _method(name):
 _LOADED = []  # the method modules imported so far (each once)
 
 
-def _load_methods():
-    """Import the method modules (they fill METHODS), once."""
+def load_methods() -> dict:
+    """:data:`METHODS` with every method in it: the modules that fill it are imported on first
+    use (here, or by :func:`register`), once, so a caller listing or checking names before any
+    registration calls this first."""
     import importlib
 
     for name in ("_bspline", "_peers"):
@@ -201,6 +228,7 @@ def _load_methods():
                 raise
         else:
             _LOADED.append(name)
+    return METHODS
 
 
 def _check(fixed, moving, mask):
@@ -331,6 +359,24 @@ def _check_option_names(method, options):
         raise TypeError(f"unknown option {unknown[0]!r} for method {method!r}; its options: {', '.join(sorted(known))}")
 
 
+def check_options(method, options) -> None:
+    """Refuse, before any work, an option ``method`` (one of :func:`load_methods`) does not take,
+    naming the ones it does, and for a B-spline method an option's value of the wrong kind or
+    range: a ValueError in one line each, for a caller that checks a configuration before the
+    work preceding its first registration (``radiokit.pipeline.Config``: ``spacing="8"`` was found
+    after the whole correction). :func:`register` itself raises Python's TypeError for an unknown
+    option's name."""
+    load_methods()
+    try:
+        _check_option_names(method, options)
+    except TypeError as exc:
+        raise ValueError(str(exc)) from None
+    if method in BSPLINE_METHODS:
+        from radiokit.register._bspline import check_option_values
+
+        check_option_values(options)
+
+
 def register(
     fixed, moving, method="rc", mask=None, *, retry=False, regularisation_check=False, **options
 ) -> Registration:
@@ -385,7 +431,7 @@ def register(
     >>> roi_observed(reg.confidence, (20, 70, 20, 70))  # textured: observed everywhere
     1.0
     """
-    _load_methods()
+    load_methods()
     if method not in METHODS:
         raise ValueError(f"unknown registration method {method!r}; available: {', '.join(sorted(METHODS))}")
     _check_option_names(method, options)
