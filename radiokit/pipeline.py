@@ -417,12 +417,15 @@ def _load_steps(path, progress: bool) -> Steps:
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
         numbers = _compression_order(numbers, keys, steps, ratios_all, gaps)
         images, ratios = [], []
-        n_frames = int(np.sum((keys == ImageKey.PROJECTION) & (steps >= 0)))
-        bar = tqdm(total=n_frames, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
+        projections = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps >= 0))
+        # one call for them all: its voltage warning counts every frame (per step, it said "1
+        # frame(s)" where three steps of one frame each were at another voltage)
+        all_factors = exposure_factors(cal, meta, path, projections)
+        bar = tqdm(total=projections.size, desc=f"correct {Path(path).name}", unit="frame", disable=not progress)
         saturated, nonfinite, unknown = {}, {}, {}
         for s in numbers:
-            idx = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps == s))
-            factors = exposure_factors(cal, meta, path, idx)
+            idx = projections[steps[projections] == s]
+            factors = all_factors[steps[projections] == s]
             image, saturated[s], nonfinite[s], where = _step_image(cal, src, path, s, idx, factors, bar)
             if where is not None:
                 unknown[s] = where

@@ -525,6 +525,27 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
     np.testing.assert_array_equal(exposure_factors(cal, jitter, path, [0, 1, 2]), [1.0, 1.0, 2.0])
 
 
+def test_the_voltage_warning_counts_every_projection_at_another_voltage(tmp_path):
+    """Flats at 40 kV, the one projection of each of three steps at 45 kV: `radiokit process` warned
+    once per step, "1 frame(s) at [45.0] kV" each time (shown once: Python does not repeat a
+    text), where all three were at another voltage. One warning now, counting them all."""
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (16, 20), np.random.default_rng(11)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape, source={"voltage_kv": 40, "current_ua": 100}) as w:
+        for _ in range(2):
+            w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
+            w.append(100 + rng.poisson(3000, shape), image_key=ImageKey.FLAT, voltage_kv=40, current_ua=100)
+        for step in (1, 2, 3):
+            w.append(100 + rng.poisson(1500, shape), image_key=ImageKey.PROJECTION, step=step, voltage_kv=45)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_steps(path)
+    said = [str(c.message) for c in caught if issubclass(c.category, CalibrationWarning) and " kV" in str(c.message)]
+    assert len(said) == 1 and "3 frame(s) at [45.0] kV" in said[0], said
+
+
 def _darks_and_flats(w, shape, rng, n):
     """``n`` darks at 100 counts and ``n`` flats at 3100 (Poisson noise of 5), appended to ``w``."""
     for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
