@@ -830,11 +830,11 @@ def _one_fault(exc, src):
         return failed
     fault = getattr(exc, "fault", None)
     if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
-        from acquisition.l8121 import OFF_NOT_CONFIRMED
-
         port = f"{src.port}: " if src is not None else ""
-        # the fault's own note of the unconfirmed switch-off: the switch-off's error says it, in full
-        said = str(fault).replace(f"; {OFF_NOT_CONFIRMED}", "")
+        off = getattr(fault, "switch_off", None)
+        # a fault whose own switch-off was not confirmed: its cause alone, the switch-off's error
+        # says the rest in full (the fault's "could not be confirmed" said it twice)
+        said = f"{off.port}: {off.cause}" if off is not None and not off.confirmed else str(fault)
         return f"{said}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
@@ -920,22 +920,32 @@ def _source_error_code(exc, src, args) -> int:
 
 def _failed_on(exc, src, args):
     """The error a failed ``on`` or ``warm-up`` ends on: ``exc`` in command-line terms and what
-    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state."""
+    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state. A
+    fault the driver switched off for (``exc.switch_off``) is worded from that outcome
+    (:func:`_off_line`), which the returned error keeps."""
     from acquisition.errors import DeviceError
 
     after = _after_failed_on(src, args)
-    text = _cli_terms(str(exc), args.port)
-    done, confirmed = "; X-rays switched off", "; X-rays off, confirmed by STS: "
-    if done in text and after.startswith(confirmed):
-        # the driver's line says it switched off: the confirmation joins those words ("X-rays
-        # switched off, confirmed by STS: STANDBY"), where the line said the switch-off twice
-        text, after = text.replace(done, done + after.removeprefix("; X-rays off"), 1), ""
-        err = DeviceError(text)
-        err.tube_said = True
+    off = getattr(exc, "switch_off", None)
+    if off is None:
+        err = DeviceError(_cli_terms(str(exc), args.port) + after)
+        err.tube_said = bool(after)
         return err
-    err = DeviceError(text + after)
-    err.tube_said = bool(after)
+    err = DeviceError(_cli_terms(_off_line(off, after), args.port))
+    err.switch_off, err.tube_said = off, off.confirmed or bool(after)
     return err
+
+
+def _off_line(off, after: str = "") -> str:
+    """The line for a fault the driver switched off for (its :class:`~acquisition.l8121.OffOutcome`):
+    the cause, then the switch-off once, with the state ``STS`` confirmed ("X-rays switched off,
+    confirmed by STS: STANDBY"; the line said the switch-off twice, s43rr2) and the controller's
+    error code; or that it was not confirmed, and ``after``: what a later try found."""
+    if off.confirmed:
+        line = f"{off.port}: {off.cause}; X-rays switched off, confirmed by STS: {off.state.name}"
+    else:
+        line = f"{off.port}: {off.cause}; switching X-rays off could not be confirmed{after}"
+    return line + (f"; controller error code {off.error_code}" if off.error_code else "")
 
 
 def _after_failed_on(src, args) -> str:

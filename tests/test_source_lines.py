@@ -3,8 +3,9 @@ the tube off, in both dialects, through the command line and the emulator on a p
 
 The line says the fault, then what the switch-off found: "X-rays switched off, confirmed by STS:
 <state>" (and the controller's error code), or what the switch-off ran into, and then the X-rays
-warning (exit 3). Pinned as the operator reads them before the command line stops composing the
-line by editing the driver's message (s44). The driver's timings are shortened (stable_timeout_s, the switch-off's window) through
+warning (exit 3). The command line composes it from what the driver's exception carries
+(``switch_off``), not by editing the driver's message: a cause worded otherwise still gives a
+right line. The driver's timings are shortened (stable_timeout_s, the switch-off's window) through
 the class the command line builds; the link and the commands stay real.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 
 import pytest
 
@@ -22,6 +24,8 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo
 
 #: short enough for a test, long enough for the emulator's replies (its ramp is 0.1 s)
 FAST = dict(stable_timeout_s=0.3, off_confirm_s=0.2, off_attempts=1, poll_s=0.02, min_interval_s=0.02)
+#: the command dialect's warm-up start command (L8121.md: A WUP, B an XON while DAG says YET)
+WARM_UP = {"A": "WUP", "B": "XON"}
 
 
 @pytest.fixture(params=["A", "B"])
@@ -121,10 +125,14 @@ def test_a_beam_never_stable_whose_switch_off_fails_says_the_cause_then_the_fail
 
 
 def test_a_switch_off_confirmed_only_by_its_second_try_says_both(dialect, fast, capsys):
-    """A supply that reads on for a while after XOF: the switch-off for the fault was not
-    confirmed within its window, the error path's next one was."""
+    """A relay that sticks for one XOF: the switch-off for the fault was not confirmed, the error
+    path's next one was (the first XOF changed nothing; the second is executed)."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
-    inject = lambda m: m.inject_after("XON", lambda: (m.ramp_down(0.35), m.drop_beam()))
+
+    def inject(m):
+        unstick = lambda: m.inject_after("XOF", lambda: m.stuck_on(False))
+        m.inject_after("XON", lambda: (m.stuck_on(), m.drop_beam(), unstick()))
+
     code, err, port = _source(model, "on", capsys, inject, *ON)
     assert code == 1 and not model.xray_on, err
     assert err[-1] == (
@@ -155,6 +163,68 @@ def test_a_warm_up_past_its_time_out_ends_on_the_confirmed_switch_off(dialect, f
     assert err[-1] == (
         f"error: {port}: warm-up not done within 0.3 s (state WARMING_UP); X-rays switched off, "
         f"confirmed by STS: {after}"
+    )
+
+
+def test_a_warm_up_past_its_time_out_whose_switch_off_fails_does_not_say_switched_off(dialect, fast, capsys):
+    """Found (s44): the line said "X-rays switched off; switching X-rays off: could not confirm X-rays
+    off": the driver wrote "X-rays switched off" into the time-out's message before any XOF went,
+    and a relay stuck on then made it false. The switch-off happens where the time-out is met, and
+    the line says what it found."""
+    model = L8121Model(dialect=dialect, warmup_s=5.0, ramp_s=0.1)
+    inject = lambda m: m.inject_after(WARM_UP[dialect], m.stuck_on)
+    code, err, port = _source(model, "warm-up", capsys, inject, "--timeout", "0.3", "-q")
+    assert code == 3 and err[-1] == TUBE_WARNING, err
+    assert err[-2] == (
+        f"error: {port}: warm-up not done within 0.3 s (state WARMING_UP); switching X-rays off: "
+        f"{_unconfirmed('WARMING_UP')}"
+    )
+    assert "switched off" not in err[-2]
+
+
+class _RunsOn(L8121Model):
+    """A warm-up that runs on into X-rays on at its end, and is not recorded done (A's SWE reads
+    running, B's DAG YET): L8121.md says nothing of how B's AGING ends."""
+
+    def _start_warm_up(self, t):
+        from acquisition.l8121 import SourceState, WarmupState
+
+        self._state, self._warmup, self._warmup_t0 = SourceState.WARMING_UP, WarmupState.RUNNING, t
+        self._schedule(t + self.warmup_s, self._switch_on)  # not back to standby: on, at the set values
+
+
+def test_a_warm_up_that_runs_on_says_its_confirmed_switch_off_once(dialect, fast, capsys):
+    """Found (s44): "...does not report it done; X-rays switched off, confirmed by STS: STANDBY
+    (state STANDBY)": the confirmation spliced in before the driver's own "(state ...)"."""
+    model = _RunsOn(dialect=dialect, warmup_s=0.2, ramp_s=0.1)
+    code, err, port = _source(model, "warm-up", capsys, None, "--timeout", "5", "-q")
+    assert code == 1 and not model.xray_on, err
+    assert re.fullmatch(
+        rf"error: {re.escape(port)}: the warm-up ran on into X-rays on after \d+\.\d s and the controller does "
+        r"not report it done; X-rays switched off, confirmed by STS: STANDBY",
+        err[-1],
+    ), err
+
+
+@pytest.mark.parametrize(
+    "cause",
+    [
+        "interlock open; X-rays switched off by the interlock chain",  # the old splice's marker, in a cause
+        "the door was opened",  # a cause worded otherwise
+    ],
+)
+def test_a_cause_worded_otherwise_still_gives_the_right_line(dialect, fast, capsys, monkeypatch, cause):
+    """The command line composed its line by editing the driver's message (splicing the
+    confirmation after "; X-rays switched off", cutting the driver's "not confirmed" note out):
+    a cause that held those words had the confirmation spliced into its middle, and the driver's
+    note reworded would have been said twice. The line comes from the exception's fields."""
+    monkeypatch.setattr(fast, "_fault_reason", lambda self, *a, **k: cause)
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.open_interlock), *ON)
+    assert code == 1 and not model.xray_on, err
+    assert err[-1] == (
+        f"error: {port}: {cause}; X-rays switched off, confirmed by STS: STANDBY; "
+        f"controller error code {int(ErrorCode.INTERLOCK)}"
     )
 
 
