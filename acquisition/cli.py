@@ -567,18 +567,16 @@ def _source_said_last(args) -> int:
     if args.action == "on" and (args.kv is None or args.ua is None):
         print("error: 'on' needs --kv and --ua", file=sys.stderr)
         return 2
+    args.whole = None  # the whole kV and µA the driver sends (on, warm-up), once checked
     if args.kv is not None:  # on, warm-up: refused before the port is opened, nothing sent
         from acquisition.l8121 import L8121
 
-        # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half
-        # up), on its configuration, unconnected; on() checks again and warns of the rounding
-        cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
+        # the driver's own check (ratings, limits, the whole numbers it sends: it rounds half up,
+        # and warns; for `on`, the tolerances judged at them), on its configuration, unconnected.
+        # on() and warm_up() are given those whole numbers: they check again, but say no rounding
+        unconnected = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False)
         try:
-            cfg.check_exposure(args.kv, args.ua)
-            whole = math.floor(args.kv + 0.5), math.floor(args.ua + 0.5)  # (finite: checked)
-            cfg.check_exposure(*whole)
-            if args.action == "on":  # on() judges the beam's stability at its setting (not a warm-up's)
-                cfg.check_tolerances(*whole)
+            args.whole = unconnected.validate(args.kv, args.ua, exposure=args.action == "on")
         except ValueError as exc:
             said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
             print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
@@ -1084,9 +1082,8 @@ def _source_action(src, args) -> int:
             return code
     elif args.action == "warm-up":
         try:
-            seconds = src.warm_up(
-                timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
-            )
+            kv, ua = args.whole or (None, None)  # (checked and rounded before the port was opened)
+            seconds = src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=kv, ua=ua)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
@@ -1099,7 +1096,7 @@ def _source_action(src, args) -> int:
             flush=True,
         )
         try:
-            r = src.on(args.kv, args.ua)
+            r = src.on(*args.whole)  # (checked and rounded before the port was opened)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
         print(

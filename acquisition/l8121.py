@@ -2460,26 +2460,24 @@ class L8121:
         self.dialect.settings["focus"].line(self, value)
 
     # ---- operations ----
-    def _validate_beam(self, kv: float, ua: float) -> tuple[int, int]:
-        """:meth:`validate`, and the tolerances (the defaults too) judged at the whole numbers that
-        will be sent, as a beam is set to be judged stable (:meth:`on`, :meth:`set_values`): a
-        tolerance wider than ``1 - beam_drop_fraction`` of the setting counts a beam the monitor
-        calls dropped as stable. ``ValueError`` before anything is sent. Not for a warm-up's
-        values: no beam is judged against them."""
-        kv_i, ua_i = self.validate(kv, ua)
-        self.config.check_tolerances(kv_i, ua_i)
-        return kv_i, ua_i
-
-    def validate(self, kv: float, ua: float) -> tuple[int, int]:
+    def validate(self, kv: float, ua: float, *, exposure: bool = False) -> tuple[int, int]:
         """Check a voltage and current against the configuration and the ratings; nothing is sent.
 
         Returns the whole numbers that would be sent (rounded half up, with a logged warning when
         rounding changed a value). Raises ``ValueError`` naming the parameter and the limit
-        (:meth:`SourceConfig.check_exposure`).
+        (:meth:`SourceConfig.check_exposure`). With ``exposure``, the values of a beam to be judged
+        stable at them (:meth:`on`, :meth:`set_values` while on): the tolerances too, the defaults
+        included, at the whole numbers that will be sent -- a tolerance wider than
+        ``1 - beam_drop_fraction`` of the setting counts a beam the monitor calls dropped as
+        stable. Not for a warm-up's values: no beam is judged against them. The command line
+        checks its --kv and --ua with this before it opens the port, and hands the whole numbers
+        on, so that the rounding is said once.
         """
         self.config.check_exposure(kv, ua)
         kv_i, ua_i = _whole(kv, "tube voltage", "kV"), _whole(ua, "tube current", "µA")
         self.config.check_exposure(kv_i, ua_i)
+        if exposure:
+            self.config.check_tolerances(kv_i, ua_i)
         return kv_i, ua_i
 
     def set_values(self, kv: float, ua: float) -> tuple[int, int]:
@@ -2496,7 +2494,7 @@ class L8121:
         beam_on = self._beam is not None
         # the tolerances only for a beam judged stable at these values (a warm-up's, and the
         # presets before on(), are not: on() judges its own)
-        kv_i, ua_i = self._validate_beam(kv, ua) if beam_on else self.validate(kv, ua)
+        kv_i, ua_i = self.validate(kv, ua, exposure=beam_on)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
             _, old_ua = self.setpoint()
@@ -2796,7 +2794,7 @@ class L8121:
             L8121.md says it means) before switching on; overload, interlock, dropped beam or a
             warm-up instead of the exposure while waiting (X-rays switched off).
         """
-        kv_i, ua_i = self._validate_beam(kv, ua)
+        kv_i, ua_i = self.validate(kv, ua, exposure=True)
         self._require_ready()
         seen = self._reconnects()
         try:
