@@ -567,18 +567,16 @@ def _source_said_last(args) -> int:
     if args.action == "on" and (args.kv is None or args.ua is None):
         print("error: 'on' needs --kv and --ua", file=sys.stderr)
         return 2
+    args.whole = None  # the whole kV and µA the driver sends (on, warm-up), once checked
     if args.kv is not None:  # on, warm-up: refused before the port is opened, nothing sent
         from acquisition.l8121 import L8121
 
-        # the driver's own check (ratings, limits, and the whole numbers it sends: it rounds half
-        # up), on its configuration, unconnected; on() checks again and warns of the rounding
-        cfg = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False).config
+        # the driver's own check (ratings, limits, the whole numbers it sends: it rounds half up,
+        # and warns; for `on`, the tolerances judged at them), on its configuration, unconnected.
+        # on() and warm_up() are given those whole numbers: they check again, but say no rounding
+        unconnected = L8121(args.port, baudrate=args.baudrate, dialect=args.dialect or "auto", connect=False)
         try:
-            cfg.check_exposure(args.kv, args.ua)
-            whole = math.floor(args.kv + 0.5), math.floor(args.ua + 0.5)  # (finite: checked)
-            cfg.check_exposure(*whole)
-            if args.action == "on":  # on() judges the beam's stability at its setting (not a warm-up's)
-                cfg.check_tolerances(*whole)
+            args.whole = unconnected.validate(args.kv, args.ua, exposure=args.action == "on")
         except ValueError as exc:
             said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
             print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
@@ -830,11 +828,11 @@ def _one_fault(exc, src):
         return failed
     fault = getattr(exc, "fault", None)
     if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
-        from acquisition.l8121 import OFF_NOT_CONFIRMED
-
         port = f"{src.port}: " if src is not None else ""
-        # the fault's own note of the unconfirmed switch-off: the switch-off's error says it, in full
-        said = str(fault).replace(f"; {OFF_NOT_CONFIRMED}", "")
+        off = getattr(fault, "switch_off", None)
+        # a fault whose own switch-off was not confirmed: its cause alone, the switch-off's error
+        # says the rest in full (the fault's "could not be confirmed" said it twice)
+        said = f"{off.port}: {off.cause}" if off is not None and not off.confirmed else str(fault)
         return f"{said}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
@@ -920,22 +918,32 @@ def _source_error_code(exc, src, args) -> int:
 
 def _failed_on(exc, src, args):
     """The error a failed ``on`` or ``warm-up`` ends on: ``exc`` in command-line terms and what
-    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state."""
+    it left the tube in (:func:`_after_failed_on`); ``tube_said`` when that says the state. A
+    fault the driver switched off for (``exc.switch_off``) is worded from that outcome
+    (:func:`_off_line`), which the returned error keeps."""
     from acquisition.errors import DeviceError
 
     after = _after_failed_on(src, args)
-    text = _cli_terms(str(exc), args.port)
-    done, confirmed = "; X-rays switched off", "; X-rays off, confirmed by STS: "
-    if done in text and after.startswith(confirmed):
-        # the driver's line says it switched off: the confirmation joins those words ("X-rays
-        # switched off, confirmed by STS: STANDBY"), where the line said the switch-off twice
-        text, after = text.replace(done, done + after.removeprefix("; X-rays off"), 1), ""
-        err = DeviceError(text)
-        err.tube_said = True
+    off = getattr(exc, "switch_off", None)
+    if off is None:
+        err = DeviceError(_cli_terms(str(exc), args.port) + after)
+        err.tube_said = bool(after)
         return err
-    err = DeviceError(text + after)
-    err.tube_said = bool(after)
+    err = DeviceError(_cli_terms(_off_line(off, after), args.port))
+    err.switch_off, err.tube_said = off, off.confirmed or bool(after)
     return err
+
+
+def _off_line(off, after: str = "") -> str:
+    """The line for a fault the driver switched off for (its :class:`~acquisition.l8121.OffOutcome`):
+    the cause, then the switch-off once, with the state ``STS`` confirmed ("X-rays switched off,
+    confirmed by STS: STANDBY"; the line said the switch-off twice, s43rr2) and the controller's
+    error code; or that it was not confirmed, and ``after``: what a later try found."""
+    if off.confirmed:
+        line = f"{off.port}: {off.cause}; X-rays switched off, confirmed by STS: {off.state.name}"
+    else:
+        line = f"{off.port}: {off.cause}; switching X-rays off could not be confirmed{after}"
+    return line + (f"; controller error code {off.error_code}" if off.error_code else "")
 
 
 def _after_failed_on(src, args) -> str:
@@ -1074,9 +1082,8 @@ def _source_action(src, args) -> int:
             return code
     elif args.action == "warm-up":
         try:
-            seconds = src.warm_up(
-                timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=args.kv, ua=args.ua
-            )
+            kv, ua = args.whole or (None, None)  # (checked and rounded before the port was opened)
+            seconds = src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=kv, ua=ua)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
@@ -1089,7 +1096,7 @@ def _source_action(src, args) -> int:
             flush=True,
         )
         try:
-            r = src.on(args.kv, args.ua)
+            r = src.on(*args.whole)  # (checked and rounded before the port was opened)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
         print(

@@ -114,6 +114,7 @@ __all__ = [
     "Command",
     "Choice",
     "SwitchedOff",
+    "OffOutcome",
 ]
 
 logger = logging.getLogger(__name__)
@@ -174,6 +175,40 @@ class SourceState(IntEnum):
 _OFF_STATES = frozenset(
     {SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.OVERLOAD, SourceState.NOT_READY, SourceState.SELF_TEST}
 )
+
+
+@dataclasses.dataclass(frozen=True)
+class OffOutcome:
+    """What the switch-off a fault called for found, carried by that fault's exception as its
+    ``switch_off`` attribute (:meth:`L8121._switched_off`), so that a caller -- the command line --
+    composes its own line from these fields instead of editing the driver's message (a reworded
+    message silently broke the line it had spliced together).
+
+    ``cause`` is why the driver switched off, without the port (``"interlock open"``); ``state``
+    the state ``STS`` read that confirmed the tube off (None: not confirmed); ``failure`` the error
+    :meth:`L8121.off` raised when it could not confirm; ``error_code`` the controller's error code
+    ``SER`` read after a confirmed switch-off, when not 0 and asked (None otherwise). Every
+    switch-off recorded here was attempted (``XOF`` sent) for this fault. The fail-safe's (a
+    failed exchange, :meth:`L8121._fail_safe`) is not recorded here: its cause's message says no
+    switch-off, and a caller reads the driver's state after it (:attr:`L8121.confirmed_off`).
+    """
+
+    port: str
+    cause: str
+    state: SourceState | None = None
+    failure: Exception | None = None
+    error_code: int | None = None
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether ``STS`` confirmed the tube off after this switch-off."""
+        return self.state is not None
+
+    @property
+    def note(self) -> str:
+        """The driver's own words for the outcome, after the cause in its message."""
+        said = "X-rays switched off" if self.confirmed else OFF_NOT_CONFIRMED
+        return said + (f"; controller error code {self.error_code}" if self.error_code else "")
 
 
 class WarmupState(IntEnum):
@@ -572,8 +607,8 @@ def _focus_modes(modes) -> tuple:
 #: the tolerances a configuration has when none is written (None; :meth:`SourceConfig.tolerance_ua`
 #: narrows them at a low setting)
 _DEFAULT_TOLERANCES = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
-#: a fault's note when its switch-off was not confirmed (the command line, which then says the
-#: switch-off's own error after the fault, drops it: the same fact twice in one line)
+#: a fault's note when its switch-off was not confirmed (:attr:`OffOutcome.note`; the command line
+#: words its own line from the outcome's fields)
 OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"
 #: the step of a measured kV and µA (A's SAR reads whole numbers; B's SCU whole µA): a narrowed
 #: default tolerance is no finer, where the room allows
@@ -2425,26 +2460,24 @@ class L8121:
         self.dialect.settings["focus"].line(self, value)
 
     # ---- operations ----
-    def _validate_beam(self, kv: float, ua: float) -> tuple[int, int]:
-        """:meth:`validate`, and the tolerances (the defaults too) judged at the whole numbers that
-        will be sent, as a beam is set to be judged stable (:meth:`on`, :meth:`set_values`): a
-        tolerance wider than ``1 - beam_drop_fraction`` of the setting counts a beam the monitor
-        calls dropped as stable. ``ValueError`` before anything is sent. Not for a warm-up's
-        values: no beam is judged against them."""
-        kv_i, ua_i = self.validate(kv, ua)
-        self.config.check_tolerances(kv_i, ua_i)
-        return kv_i, ua_i
-
-    def validate(self, kv: float, ua: float) -> tuple[int, int]:
+    def validate(self, kv: float, ua: float, *, exposure: bool = False) -> tuple[int, int]:
         """Check a voltage and current against the configuration and the ratings; nothing is sent.
 
         Returns the whole numbers that would be sent (rounded half up, with a logged warning when
         rounding changed a value). Raises ``ValueError`` naming the parameter and the limit
-        (:meth:`SourceConfig.check_exposure`).
+        (:meth:`SourceConfig.check_exposure`). With ``exposure``, the values of a beam to be judged
+        stable at them (:meth:`on`, :meth:`set_values` while on): the tolerances too, the defaults
+        included, at the whole numbers that will be sent -- a tolerance wider than
+        ``1 - beam_drop_fraction`` of the setting counts a beam the monitor calls dropped as
+        stable. Not for a warm-up's values: no beam is judged against them. The command line
+        checks its --kv and --ua with this before it opens the port, and hands the whole numbers
+        on, so that the rounding is said once.
         """
         self.config.check_exposure(kv, ua)
         kv_i, ua_i = _whole(kv, "tube voltage", "kV"), _whole(ua, "tube current", "µA")
         self.config.check_exposure(kv_i, ua_i)
+        if exposure:
+            self.config.check_tolerances(kv_i, ua_i)
         return kv_i, ua_i
 
     def set_values(self, kv: float, ua: float) -> tuple[int, int]:
@@ -2461,7 +2494,7 @@ class L8121:
         beam_on = self._beam is not None
         # the tolerances only for a beam judged stable at these values (a warm-up's, and the
         # presets before on(), are not: on() judges its own)
-        kv_i, ua_i = self._validate_beam(kv, ua) if beam_on else self.validate(kv, ua)
+        kv_i, ua_i = self.validate(kv, ua, exposure=beam_on)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
             _, old_ua = self.setpoint()
@@ -2677,26 +2710,29 @@ class L8121:
                 if seen_running or not self._warm_up_pending():
                     self._warm_up_stopped(elapsed, seen_running)
             if elapsed > timeout_s:
-                raise DeviceError(
-                    f"{self.port}: warm-up not done within {timeout_s:g} s (state {state.said}); X-rays switched off"
-                )
+                # switched off here, as a beam not stable is: the line said "X-rays switched off"
+                # before any XOF went, also when the switch-off then failed (s44)
+                off, failed = self._off_for_fault()
+                why = f"warm-up not done within {timeout_s:g} s (state {state.said})"
+                raise self._switched_off(DeviceError, why, off, failed, ask_code=False) from failed
             time.sleep(self.config.poll_s)
 
     def _warm_up_ran_on(self, elapsed: float) -> None:
         """The warm-up (seen running) went on into X-rays on instead of back to standby: dialect B's
         ``AGING`` may end that way (L8121.md does not say it returns to ``STANDBY``). Nobody asked
-        for that beam: switch off, confirmed (``off()`` raises when it cannot confirm), then the
-        controller's own record says whether the warm-up counts as done (B ``DAG ... END``, A
-        ``SWE 0``); if it does not, the warm-up failed."""
+        for that beam: switch off, confirmed (not confirmed, the error names the run-on first, then
+        what the switch-off ran into), then the controller's own record says whether the warm-up
+        counts as done (B ``DAG ... END``, A ``SWE 0``); if it does not, the warm-up failed."""
         logger.warning(
             "%s: the warm-up ran on into X-rays on after %.1f s (STS says X-rays on): switching off", self.port, elapsed
         )
-        state = self.off()
+        state, failed = self._off_for_fault()
+        ran_on = f"the warm-up ran on into X-rays on after {elapsed:.1f} s"
+        if failed is not None:  # its cause said with the failure, not the failure alone
+            raise self._switched_off(DeviceError, ran_on, state, failed, ask_code=False) from failed
         if self.warmup_state() != WarmupState.DONE:
-            raise DeviceError(
-                f"{self.port}: the warm-up ran on into X-rays on after {elapsed:.1f} s and the controller does not "
-                f"report it done; X-rays switched off (state {state.name})"
-            )
+            why = f"{ran_on} and the controller does not report it done"
+            raise self._switched_off(DeviceError, why, state, None, ask_code=False)
         logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
 
     def _warm_up_pending(self) -> bool:
@@ -2758,7 +2794,7 @@ class L8121:
             L8121.md says it means) before switching on; overload, interlock, dropped beam or a
             warm-up instead of the exposure while waiting (X-rays switched off).
         """
-        kv_i, ua_i = self._validate_beam(kv, ua)
+        kv_i, ua_i = self.validate(kv, ua, exposure=True)
         self._require_ready()
         seen = self._reconnects()
         try:
@@ -2862,13 +2898,12 @@ class L8121:
                 # switched off here, not by the caller's error path: the line then says what the
                 # switch-off found (confirmed or not) and the controller's error code, as a trip's
                 # does -- it said "X-rays switched off" before any XOF went (s43)
-                _, note, failed = self._off_for_fault()
-                note += self._error_code_note()
-                raise DeviceError(
-                    f"{self.port}: beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: "
-                    f"measured {m_kv:g} kV {m_ua:g} µA, set {kv} kV {ua} µA "
-                    f"(tolerance {tol_kv:g} kV, {tol_ua:g} µA); {note}"
-                ) from failed
+                off, failed = self._off_for_fault()
+                why = (
+                    f"beam not stable within stable_timeout_s = {c.stable_timeout_s:g} s: measured {m_kv:g} kV "
+                    f"{m_ua:g} µA, set {kv} kV {ua} µA (tolerance {tol_kv:g} kV, {tol_ua:g} µA)"
+                )
+                raise self._switched_off(DeviceError, why, off, failed) from failed
             time.sleep(c.poll_s)
 
     def _fault_reason(
@@ -2941,42 +2976,51 @@ class L8121:
     def _trip(self, reason: str | Callable[[bool], str]):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`)."""
-        state, note, failed = self._off_for_fault()
+        state, failed = self._off_for_fault()
         if callable(reason):
             reason = reason(self.off_failed is None)
         if state == SourceState.OVERLOAD and not reason.startswith("overload"):
             # B reads state and current in separate exchanges: an overload between them looks
             # like a dropped beam until the STS after XOF says what it was
             reason = f"overload ({reason})"
-        note += self._error_code_note()
+        err = self._switched_off(SourceFault, reason, state, failed)
         # the caller reports the SourceFault (the command line's error line; the series names a
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
-        logger.info("%s: %s; %s", self.port, reason, note)
-        raise SourceFault(f"{self.port}: {reason}; {note}") from failed  # (its words: off_failed)
+        logger.info("%s", err)
+        raise err from failed  # (its words: off_failed)
 
-    def _off_for_fault(self) -> tuple[SourceState | None, str, DeviceError | None]:
-        """Switch off for a fault: the state the switch-off confirmed (None: not confirmed), the
-        note for the fault's message ("X-rays switched off", or not confirmed) and the switch-off's
-        error. The controller's error code is :meth:`_error_code_note`'s, asked after (a trip asks
-        ``SIN`` in between, for its message)."""
+    def _off_for_fault(self) -> tuple[SourceState | None, DeviceError | None]:
+        """Switch off for a fault: the state the switch-off confirmed (None: not confirmed) and
+        the switch-off's error (:meth:`_switched_off` words the fault's exception from them)."""
         try:
-            return self.off(), "X-rays switched off", None
+            return self.off(), None
         except DeviceError as exc:
             # said as every unconfirmed switch-off is (CRITICAL, once; the command line says it
             # right above its X-RAYS warning), not only inside the fault's line
             self._log_off_failure(exc)
-            return None, OFF_NOT_CONFIRMED, exc
+            return None, exc
 
-    def _error_code_note(self) -> str:
-        """The note "; controller error code N" when ``SER`` reads a code after a fault's switch-off (often
-        why the beam is not what was set), else "" -- not asked of a controller whose switch-off
-        failed, nor said when ``SER`` cannot be read."""
+    def _switched_off(self, kind: type[DeviceError], cause: str, state, failed, *, ask_code: bool = True):
+        """The exception (of ``kind``) for a fault ``cause`` whose switch-off (:meth:`_off_for_fault`)
+        confirmed ``state`` or failed with ``failed``: "<port>: <cause>; <what the switch-off
+        found>", the outcome kept in its ``switch_off`` (:class:`OffOutcome`). With ``ask_code``,
+        the controller's error code is asked after a confirmed switch-off (often why the beam is
+        not what was set); not of a controller whose switch-off failed."""
+        code = self._error_code_after_off() if ask_code else None
+        outcome = OffOutcome(self.port, cause, state=state, failure=failed, error_code=code)
+        err = kind(f"{self.port}: {cause}; {outcome.note}")
+        err.switch_off = outcome
+        return err
+
+    def _error_code_after_off(self) -> int | None:
+        """The code ``SER`` reads after a fault's switch-off, or None: 0, not asked (a controller
+        whose switch-off failed), or not readable."""
         try:
             code = None if self.off_failed else self.error_code()
         except DeviceError:
-            return ""
-        return f"; controller error code {code}" if code else ""
+            return None
+        return code or None
 
     def check(self) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.

@@ -1,0 +1,264 @@
+"""The error line `radiokit acquire source on` and `warm-up` end on after a fault that switched
+the tube off, in both dialects, through the command line and the emulator on a pseudo-terminal.
+
+The line says the fault, then what the switch-off found: "X-rays switched off, confirmed by STS:
+<state>" (and the controller's error code), or what the switch-off ran into, and then the X-rays
+warning (exit 3). The command line composes it from what the driver's exception carries
+(``switch_off``), not by editing the driver's message: a cause worded otherwise still gives a
+right line. The driver's timings are shortened (stable_timeout_s, the switch-off's window) through
+the class the command line builds; the link and the commands stay real.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+
+import pytest
+
+from acquisition.emulators.l8121 import ErrorCode, L8121Model, PtyServer
+from acquisition.guardian import TUBE_WARNING
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+#: short enough for a test, long enough for the emulator's replies (its ramp is 0.1 s)
+FAST = dict(stable_timeout_s=0.3, off_confirm_s=0.2, off_attempts=1, poll_s=0.02, min_interval_s=0.02)
+#: the command dialect's warm-up start command (L8121.md: A WUP, B an XON while DAG says YET)
+WARM_UP = {"A": "WUP", "B": "XON"}
+
+
+@pytest.fixture(params=["A", "B"])
+def dialect(request):
+    """The controller's command dialect: every test that takes it runs in both."""
+    return request.param
+
+
+@pytest.fixture
+def fast(monkeypatch):
+    """The command line's driver with :data:`FAST` timings (it imports the class when it runs)."""
+    import acquisition.l8121 as l8121
+
+    class Fast(l8121.L8121):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**FAST, **kwargs})
+
+    monkeypatch.setattr(l8121, "L8121", Fast)
+    return Fast
+
+
+def _source(model, action, capsys, inject=None, *extra) -> tuple[int, list[str], str]:
+    """Run ``radiokit acquire source ACTION`` against ``model`` in its dialect: the exit code, the
+    non-empty stderr lines, and the port's name."""
+    from radiokit.cli import main
+
+    with PtyServer(model) as server:
+        if inject is not None:
+            inject(model)
+        args = ["acquire", "source", action, "--port", server.url, "--dialect", model.dialect, *extra]
+        try:
+            code = main(args)
+        finally:
+            model.stuck_on(False)  # the server's own end must be able to close
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    return code, err, server.url
+
+
+def _not_stable(kv=60, ua=250) -> str:
+    """The cause the driver names for a beam that never reached ``kv``, ``ua`` (the emulator's
+    dropped emitter: the set voltage, no current), at the default tolerances (1 kV, 5 µA)."""
+    return (
+        f"beam not stable within stable_timeout_s = {FAST['stable_timeout_s']:g} s: measured {kv} kV 0 µA, "
+        f"set {kv} kV {ua} µA (tolerance 1 kV, 5 µA)"
+    )
+
+
+def _unconfirmed(state: str) -> str:
+    """What the driver's one attempt (:data:`FAST`) says when ``STS`` still reads ``state``."""
+    return (
+        f"could not confirm X-rays off after 1 attempt(s) (last: STS still {state} after XOF); "
+        "switch the source off at the controller"
+    )
+
+
+ON = ("--kv", "60", "--ua", "250")
+
+
+def test_a_trip_in_the_ramp_ends_on_the_confirmed_switch_off_and_the_error_code(dialect, fast, capsys):
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.open_interlock), *ON)
+    assert code == 1 and not model.xray_on, err
+    assert err[-1] == (
+        f"error: {port}: interlock open; X-rays switched off, confirmed by STS: STANDBY; "
+        f"controller error code {int(ErrorCode.INTERLOCK)}"
+    )
+
+
+def test_an_overload_in_the_ramp_ends_on_the_state_sts_confirmed(dialect, fast, capsys):
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.overload), *ON)
+    assert code == 1 and not model.xray_on, err
+    assert err[-1] == (
+        f"error: {port}: overload; X-rays switched off, confirmed by STS: OVERLOAD; "
+        f"controller error code {int(ErrorCode.OVERLOAD)}"
+    )
+
+
+def test_a_beam_never_stable_ends_on_the_confirmed_switch_off_and_the_error_code(dialect, fast, capsys):
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    inject = lambda m: m.inject_after("XON", lambda: (m.drop_beam(), m.controller_error(2)))
+    code, err, port = _source(model, "on", capsys, inject, *ON)
+    assert code == 1 and not model.xray_on, err
+    told = "; controller error code 2"  # (no code: the warm-up's line below)
+    assert err[-1] == f"error: {port}: {_not_stable()}; X-rays switched off, confirmed by STS: STANDBY{told}"
+
+
+def test_a_beam_never_stable_whose_switch_off_fails_says_the_cause_then_the_failure(dialect, fast, capsys):
+    """A relay stuck on: the fault, then what switching off ran into (the last try, as the link
+    closed), each once; then the warning, exit 3."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    inject = lambda m: m.inject_after("XON", lambda: (m.stuck_on(), m.drop_beam()))
+    code, err, port = _source(model, "on", capsys, inject, *ON)
+    assert code == 3 and err[-1] == TUBE_WARNING, err
+    assert err[-2] == f"error: {port}: {_not_stable()}; switching X-rays off: {_unconfirmed('XRAY_ON')}"
+    assert [ln for ln in err if ln.startswith("error:")] == [err[-2]], err
+
+
+def test_a_switch_off_confirmed_only_by_its_second_try_says_both(dialect, fast, capsys):
+    """A relay that sticks for one XOF: the switch-off for the fault was not confirmed, the error
+    path's next one was (the first XOF changed nothing; the second is executed)."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+
+    def inject(m):
+        unstick = lambda: m.inject_after("XOF", lambda: m.stuck_on(False))
+        m.inject_after("XON", lambda: (m.stuck_on(), m.drop_beam(), unstick()))
+
+    code, err, port = _source(model, "on", capsys, inject, *ON)
+    assert code == 1 and not model.xray_on, err
+    assert err[-1] == (
+        f"error: {port}: {_not_stable()}; switching X-rays off could not be confirmed; "
+        "X-rays off, confirmed by STS: STANDBY"
+    )
+
+
+def test_b_a_trip_on_sts_error_whose_switch_off_fails_says_the_cause_then_the_failure(fast, capsys):
+    """B's STS ERROR in the ramp does not show the beam off, before nor after the XOF."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    inject = lambda m: m.inject_after("XON", lambda: (m.stuck_on(), m.sts_error()))
+    code, err, port = _source(model, "on", capsys, inject, *ON)
+    assert code == 3 and err[-1] == TUBE_WARNING, err
+    error = "ERROR (PREHEATING, or a refused query: dialect B does not say which)"
+    assert err[-2] == (
+        f"error: {port}: STS {error} instead of XON: the beam may have dropped or be on still; "
+        f"switching X-rays off: {_unconfirmed(error)}"
+    )
+
+
+def test_a_warm_up_past_its_time_out_ends_on_the_confirmed_switch_off(dialect, fast, capsys):
+    model = L8121Model(dialect=dialect, warmup_s=5.0, ramp_s=0.1)
+    code, err, port = _source(model, "warm-up", capsys, None, "--timeout", "0.3", "-q")
+    assert code == 1 and model.state.name == "WARMUP_NEEDED", err
+    # B's STS reads STANDBY while a warm-up is due (its DAG says YET); A's reads warm-up needed
+    after = "STANDBY" if dialect == "B" else "WARMUP_NEEDED"
+    assert err[-1] == (
+        f"error: {port}: warm-up not done within 0.3 s (state WARMING_UP); X-rays switched off, "
+        f"confirmed by STS: {after}"
+    )
+
+
+def test_a_warm_up_past_its_time_out_whose_switch_off_fails_does_not_say_switched_off(dialect, fast, capsys):
+    """Found (s44): the line said "X-rays switched off; switching X-rays off: could not confirm X-rays
+    off": the driver wrote "X-rays switched off" into the time-out's message before any XOF went,
+    and a relay stuck on then made it false. The switch-off happens where the time-out is met, and
+    the line says what it found."""
+    model = L8121Model(dialect=dialect, warmup_s=5.0, ramp_s=0.1)
+    inject = lambda m: m.inject_after(WARM_UP[dialect], m.stuck_on)
+    code, err, port = _source(model, "warm-up", capsys, inject, "--timeout", "0.3", "-q")
+    assert code == 3 and err[-1] == TUBE_WARNING, err
+    assert err[-2] == (
+        f"error: {port}: warm-up not done within 0.3 s (state WARMING_UP); switching X-rays off: "
+        f"{_unconfirmed('WARMING_UP')}"
+    )
+    assert "switched off" not in err[-2]
+
+
+class _RunsOn(L8121Model):
+    """A warm-up that runs on into X-rays on at its end, and is not recorded done (A's SWE reads
+    running, B's DAG YET): L8121.md says nothing of how B's AGING ends."""
+
+    def _start_warm_up(self, t):
+        from acquisition.l8121 import SourceState, WarmupState
+
+        self._state, self._warmup, self._warmup_t0 = SourceState.WARMING_UP, WarmupState.RUNNING, t
+        self._schedule(t + self.warmup_s, self._switch_on)  # not back to standby: on, at the set values
+
+
+def test_a_warm_up_that_runs_on_says_its_confirmed_switch_off_once(dialect, fast, capsys):
+    """Found (s44): "...does not report it done; X-rays switched off, confirmed by STS: STANDBY
+    (state STANDBY)": the confirmation spliced in before the driver's own "(state ...)"."""
+    model = _RunsOn(dialect=dialect, warmup_s=0.2, ramp_s=0.1)
+    code, err, port = _source(model, "warm-up", capsys, None, "--timeout", "5", "-q")
+    assert code == 1 and not model.xray_on, err
+    assert re.fullmatch(
+        rf"error: {re.escape(port)}: the warm-up ran on into X-rays on after \d+\.\d s and the controller does "
+        r"not report it done; X-rays switched off, confirmed by STS: STANDBY",
+        err[-1],
+    ), err
+
+
+@pytest.mark.parametrize(
+    "cause",
+    [
+        "interlock open; X-rays switched off by the interlock chain",  # the old splice's marker, in a cause
+        "the door was opened",  # a cause worded otherwise
+    ],
+)
+def test_a_cause_worded_otherwise_still_gives_the_right_line(dialect, fast, capsys, monkeypatch, cause):
+    """The command line composed its line by editing the driver's message (splicing the
+    confirmation after "; X-rays switched off", cutting the driver's "not confirmed" note out):
+    a cause that held those words had the confirmation spliced into its middle, and the driver's
+    note reworded would have been said twice. The line comes from the exception's fields."""
+    monkeypatch.setattr(fast, "_fault_reason", lambda self, *a, **k: cause)
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.open_interlock), *ON)
+    assert code == 1 and not model.xray_on, err
+    assert err[-1] == (
+        f"error: {port}: {cause}; X-rays switched off, confirmed by STS: STANDBY; "
+        f"controller error code {int(ErrorCode.INTERLOCK)}"
+    )
+
+
+def test_source_on_warns_of_its_rounding_once_and_sends_the_whole_numbers(dialect, capsys, caplog):
+    """`source on` checks --kv/--ua before the port is opened with the driver's own check, and
+    on() checks them again: the rounding is said once."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    with caplog.at_level(logging.WARNING), PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", dialect]
+        assert main(["acquire", "source", "on", *port, "--kv", "60.4", "--ua", "249.6"]) == 0
+        assert model.xray_on and (model.set_kv, model.set_ua) == (60, 250)  # left on: the server's end ends it
+    said = [r.getMessage() for r in caplog.records if "rounded to" in r.getMessage()]
+    assert sorted(said) == [
+        "tube current 249.6 µA rounded to 250 µA: radiokit sets whole µA (dialect A's commands take integers)",
+        "tube voltage 60.4 kV rounded to 60 kV: radiokit sets whole kV (dialect A's commands take integers)",
+    ], said
+
+
+@pytest.mark.parametrize(
+    ("action", "values", "said"),
+    [
+        ("on", ("200", "250"), "voltage_kv = 200 kV is outside kv_min..kv_max"),
+        ("on", ("60", "600"), "current_ua = 600 µA is outside ua_min..ua_max"),
+        ("warm-up", ("20", "0"), "voltage_kv = 20 kV is outside kv_min..kv_max"),
+    ],
+)
+def test_source_values_out_of_range_are_refused_before_the_port_is_opened(capsys, action, values, said):
+    from radiokit.cli import main
+
+    kv, ua = values
+    code = main(["acquire", "source", action, "--port", "/dev/null/none", "--kv", kv, "--ua", ua])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith(f"error: --kv {float(kv):g} --ua {float(ua):g}: ") and said in err[0], err
+    assert err[0].endswith("; nothing was sent"), err
