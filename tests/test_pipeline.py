@@ -28,6 +28,7 @@ import dataclasses
 import json
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -264,7 +265,50 @@ def _synthetic(path, scale=1.0):
             )
 
 
-def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest(tmp_path, capsys):
+#: The CPU a local worker may spend exiting once its cluster is asked to close: the nanny waits
+#: 4 s for it (0.8 of its close's 5 s), then kills it with a warning to the user. A process on a
+#: machine of n cores at load L gets about n / L of a core, so this fits the 4 s at load 40 on two
+#: cores (the hostile trial's machine was at 10-15). A worker's exit went through all its ~140 000
+#: objects in its collections: 0.43-0.6 s a worker after small files (0.06 s with them frozen).
+_WORKER_EXIT_CPU_S = 4.0 * 2 / 40
+
+
+def _record_cluster_closes(monkeypatch) -> list[dict]:
+    """Each local cluster's close, as process_many closes it: its ``wall`` time, the CPU its
+    workers spent in it (``exit_cpu``, per worker: a worker's CPU as the close began, taken
+    from the CPU of the children it reaped), and the nanny's ``warnings`` meanwhile."""
+    import logging
+    import resource
+
+    import psutil
+    from distributed import LocalCluster
+
+    closes, original = [], LocalCluster.close
+
+    class Warnings(logging.Handler):
+        def emit(self, record):
+            closes[-1]["warnings"].append(record.getMessage())
+
+    def close(self, *args, **kwargs):
+        pids = [n.pid for n in self.workers.values() if n.pid]
+        before = sum(sum(psutil.Process(pid).cpu_times()[:2]) for pid in pids)
+        usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+        closes.append({"warnings": [], "workers": len(pids)})
+        handler, start = Warnings(logging.WARNING), time.perf_counter()
+        logging.getLogger("distributed.nanny").addHandler(handler)
+        try:
+            return original(self, *args, **kwargs)
+        finally:
+            logging.getLogger("distributed.nanny").removeHandler(handler)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            reaped = after.ru_utime + after.ru_stime - usage.ru_utime - usage.ru_stime
+            closes[-1].update(wall=time.perf_counter() - start, exit_cpu=(reaped - before) / max(1, len(pids)))
+
+    monkeypatch.setattr(LocalCluster, "close", close)
+    return closes
+
+
+def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest(tmp_path, capsys, monkeypatch):
     from radiokit.cli import main
     from radiokit.pipeline import Config, process, process_many
 
@@ -273,6 +317,7 @@ def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest
     _synthetic(paths[1], scale=1.2)
     paths[2].write_bytes(b"not an experiment")
     cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
+    closes = _record_cluster_closes(monkeypatch)
     res = process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
     assert [r["source"] for r in res] == [str(p) for p in paths]
     assert "error" in res[2] and "broken.h5" in res[2]["error"]
@@ -312,6 +357,10 @@ def test_many_files_run_in_parallel_on_dask_and_a_bad_one_does_not_stop_the_rest
     # the files' lines as one file's run prints them: no report asked for, none named
     assert f"results.json: {tmp_path / 'cli' / 'a' / 'results.json'}" in captured.out
     assert "report" not in captured.out
+    # both runs' clusters closed without waiting out the nanny's 4 s: each worker's exit is cheap
+    assert [c["workers"] for c in closes] == [2, 2], closes
+    for c in closes:
+        assert c["exit_cpu"] < _WORKER_EXIT_CPU_S and not c["warnings"], closes
 
 
 def test_cross_check_flags_two_registrations_that_disagree():
