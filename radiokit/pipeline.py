@@ -1679,7 +1679,8 @@ def _process_limits():
     """A function putting back what :func:`_limit_this_process` sets, as it is now: a worker of an
     in-process cluster (``LocalCluster(processes=False)``) runs in the caller's process, and its
     share (a fraction of the memory budget, one thread) outlived the run, refusing the caller's
-    later reads (review s40rr). glibc's malloc thresholds are left: they change speed only."""
+    later reads (review s40rr). It puts back the level of Dask's logger too, which an interrupt
+    raises (review s44). glibc's malloc thresholds are left: they change speed only."""
     import cv2
     from threadpoolctl import ThreadpoolController
 
@@ -1687,8 +1688,12 @@ def _process_limits():
 
     threads, share, cv_threads = os.environ.get("RADIOKIT_THREADS"), memory_share(), cv2.getNumThreads()
     libraries = [(lib, lib.num_threads) for lib in ThreadpoolController().lib_controllers]
+    # an interrupt silences Dask's logger for the command's one line; a library caller's stays its own
+    dask_log = logging.getLogger("distributed")
+    dask_level = dask_log.level
 
     def restore():
+        dask_log.setLevel(dask_level)
         if threads is None:
             os.environ.pop("RADIOKIT_THREADS", None)
         else:

@@ -540,6 +540,33 @@ def test_an_in_process_workers_limits_do_not_outlive_the_run(tmp_path, monkeypat
     assert "RADIOKIT_THREADS" not in os.environ
 
 
+def test_an_interrupted_run_leaves_the_callers_distributed_logger_as_it_was(tmp_path, monkeypatch):
+    """Review s44: an interrupt silences Dask's logger (the command's one line is the message) and
+    left it silenced: a notebook that stopped one run saw none of Dask's warnings after it. The
+    interrupt is raised where the run asks its scheduler for the workers' shares (a fake: the
+    instant of a real Ctrl-C cannot be chosen), on an in-process cluster."""
+    import logging
+
+    from dask.distributed import LocalCluster
+
+    import radiokit.pipeline as pipeline
+
+    path = tmp_path / "a.h5"
+    path.write_bytes(b"")  # never read: the interrupt comes first
+
+    def interrupted(client):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_scheduler_shares", interrupted)
+    log = logging.getLogger("distributed")
+    monkeypatch.setattr(log, "level", logging.INFO)
+    cfg = pipeline.Config(report=False, progress=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with pytest.raises(KeyboardInterrupt):
+            pipeline.process_many([path], cfg, out_root=tmp_path / "out", scheduler=cluster.scheduler_address)
+    assert log.level == logging.INFO
+
+
 def test_a_workers_dask_memory_limit_bounds_its_share(tmp_path, monkeypatch):
     """Dask's own memory_limit of a worker (its nanny stops a worker past it) is shared by the
     files it processes at once, and a file over that share is refused though the host's budget
