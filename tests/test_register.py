@@ -1835,8 +1835,8 @@ def test_a_trusted_plain_run_is_replaced_only_by_a_silent_one_leaving_no_more_mi
     """Review s44rr: where the plain run passed its checks on a silent body, ``silent`` replaces it only
     when it leaves no more of the observed structure misaligned, without SILENT_TIE (chosen for a
     flagged plain run). On the simulated seed-breast pairs (the paper's scene, steps -1) ``silent``
-    also passes its checks, 2.8-3.5x worse and the inclusion's own motion lost (448-560 px: 0.27-0.35
-    -> 0.76-1.0 px), leaving 0.052-0.107 more misaligned: one pair 0.002 over the tie. Every pair it
+    also passes its checks, 2.7-3.3x worse and the inclusion's own motion lost (373-560 px: 0.22-0.35
+    -> 0.66-1.0 px), leaving 0.052-0.14 more misaligned: one pair 0.002 over the tie. Every pair it
     won (the turned bodies, TRAINING and TEST; phantoms 6025; noisy-fixed 3417) left 0.000 both, but
     phantoms TEST 6055 (0.68 -> 0.56 px, 0.045 more), which keeps 0.68 now."""
     from radiokit.register import Quality

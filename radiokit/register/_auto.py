@@ -345,8 +345,8 @@ def checks_silent(name, plain_quality, fallback) -> bool:
     (:func:`returned`), without ``SILENT_TIE``, which was chosen for a flagged plain run: every pair
     it won left 0.000 misaligned both (the turned bodies' TRAINING and TEST, phantoms 6025,
     noisy-fixed 3417) but phantoms TEST 6055 (0.68 -> 0.56 px, 0.045 more: kept at 0.68 now), where
-    on the simulated seed-breast pairs (the paper's scene, steps -1, 448-560 px) ``silent`` passed
-    its checks too, 2.8-3.5x worse, leaving 0.052-0.107 more (review s44rr: one pair 0.002 over
+    on the simulated seed-breast pairs (the paper's scene, steps -1, 373-560 px) ``silent`` passed
+    its checks too, 2.7-3.3x worse, leaving 0.052-0.14 more (review s44rr: one pair 0.002 over
     the tie)."""
     return bool(plain_quality.ok and fallback == AUTO_PRESETS[name][2] != AUTO_PRESETS[name][0])
 
