@@ -1831,6 +1831,28 @@ def test_auto_tries_silent_on_a_silent_body_whose_plain_run_passed_its_checks():
     assert reg.quality.ok and _epe(reg.displacement, d, mask)[0] <= 0.5
 
 
+def test_a_trusted_plain_run_is_replaced_only_by_a_silent_one_leaving_no_more_misaligned():
+    """Review s44rr: where the plain run passed its checks on a silent body, ``silent`` replaces it only
+    when it leaves no more of the observed structure misaligned, without SILENT_TIE (chosen for a
+    flagged plain run). On the simulated seed-breast pairs (the paper's scene, steps -1) ``silent``
+    also passes its checks, 2.7-3.3x worse and the inclusion's own motion lost (373-560 px: 0.22-0.35
+    -> 0.66-1.0 px), leaving 0.052-0.14 more misaligned: one pair 0.002 over the tie. Every pair it
+    won (the turned bodies, TRAINING and TEST; phantoms 6025; noisy-fixed 3417) left 0.000 both, but
+    phantoms TEST 6055 (0.68 -> 0.56 px, 0.045 more), which keeps 0.68 now."""
+    from radiokit.register import Quality
+    from radiokit.register._auto import SILENT_TIE, returned
+
+    def q(m, ok=True):
+        return Quality(misaligned_fraction=m, ok=ok)
+
+    assert returned("auto", q(0.10), "silent", q(0.10)) == "silent"
+    assert returned("auto-fast", q(0.0), "silent-fast", q(0.0)) == "silent-fast"
+    assert returned("auto", q(0.10), "silent", q(0.10 + 0.5 * SILENT_TIE)) == "default"
+    assert returned("auto", q(0.10), "silent", q(0.05, ok=False)) == "default"
+    # a flagged plain run: the tie goes to the stiff field, as before
+    assert returned("auto", q(0.10, ok=False), "silent", q(0.10 + 0.5 * SILENT_TIE)) == "silent"
+
+
 def test_auto_stops_default_early_on_weak_texture_and_returns_weak(stopped_704):
     """Texture = noise and a local motion of 3 % of the frame through ``auto``: the interior
     carries texture, so ``default`` runs with ``ABANDON`` (a pixel), is over twice that far off
