@@ -418,6 +418,33 @@ def test_weak_alpha_follows_the_noise(loud_pair):
     assert "noise_sigma" not in register(*quiet[:2], "rc", preset="weak-fast", alpha=0.005).options
 
 
+# beside the other users of loud_pair: worksteal gave it, 460 lines down, to another worker,
+# which registered the pair again (5 CPU s)
+def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture(loud_pair, monkeypatch):
+    """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
+    of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
+    ``default`` is flagged; the interior has texture (ratio above TEXTURE_LOW by the training
+    margin), so ``auto`` tries ``weak``, whose residual moves less: it returns ``weak``'s field, says why, counts both runs' time, and leaves well
+    under ``default``'s error."""
+    from radiokit.register._auto import TEXTURE_LOW, choose
+
+    fixed, moving, d, mask = loud_pair["pair"]
+    assert choose(fixed).ratio >= 1.2 * TEXTURE_LOW and choose(fixed, "auto-fast").preset == "weak-fast"
+    default = loud_pair["default"]
+    assert not default.quality.ok  # what the fallback is for
+    runs = _record_runs(monkeypatch)
+    reg = register(fixed, moving, "rc", preset="auto")
+    monkeypatch.undo()
+    why = reg.options["auto"]
+    assert why.preset == "weak" and "default not ok" in why.reason and "weak texture" in why.reason, why
+    weak = loud_pair["weak"]
+    np.testing.assert_array_equal(reg.displacement, weak.displacement)
+    # kept because its residual moves less than default's did
+    assert weak.quality.residual_motion < default.quality.residual_motion
+    assert len(runs) == 2 and reg.quality.seconds == pytest.approx(sum(runs))  # both runs counted
+    assert _epe(reg.displacement, d, mask)[0] < 0.6 * _epe(default.displacement, d, mask)[0]
+
+
 def test_noise_sigma_reads_white_noise_through_edges_and_smooth_structure():
     """The global noise estimate: white noise of a known level on a smooth body with a sharp
     disc, an edge and a ramp is read within 5 % (the median ignores the few edge pixels)."""
@@ -861,31 +888,6 @@ def _record_runs(monkeypatch) -> list:
 
     monkeypatch.setattr(R, "register", recorded)
     return runs
-
-
-def test_auto_falls_back_to_weak_when_default_is_flagged_on_weak_texture(loud_pair, monkeypatch):
-    """Texture 3x the noise (1.5 % of the body's line integral), motion correlated over a tenth
-    of the frame (the pair of ``test_weak_preset_recovers_weak_texture_short_correlation``):
-    ``default`` is flagged; the interior has texture (ratio above TEXTURE_LOW by the training
-    margin), so ``auto`` tries ``weak``, whose residual moves less: it returns ``weak``'s field, says why, counts both runs' time, and leaves well
-    under ``default``'s error."""
-    from radiokit.register._auto import TEXTURE_LOW, choose
-
-    fixed, moving, d, mask = loud_pair["pair"]
-    assert choose(fixed).ratio >= 1.2 * TEXTURE_LOW and choose(fixed, "auto-fast").preset == "weak-fast"
-    default = loud_pair["default"]
-    assert not default.quality.ok  # what the fallback is for
-    runs = _record_runs(monkeypatch)
-    reg = register(fixed, moving, "rc", preset="auto")
-    monkeypatch.undo()
-    why = reg.options["auto"]
-    assert why.preset == "weak" and "default not ok" in why.reason and "weak texture" in why.reason, why
-    weak = loud_pair["weak"]
-    np.testing.assert_array_equal(reg.displacement, weak.displacement)
-    # kept because its residual moves less than default's did
-    assert weak.quality.residual_motion < default.quality.residual_motion
-    assert len(runs) == 2 and reg.quality.seconds == pytest.approx(sum(runs))  # both runs counted
-    assert _epe(reg.displacement, d, mask)[0] < 0.6 * _epe(default.displacement, d, mask)[0]
 
 
 def test_auto_falls_back_to_silent_on_a_silent_body():

@@ -54,19 +54,23 @@ def _rois(half):
 @pytest.mark.parametrize("half", [1, 3], ids=["3x3", "7x7"])
 def test_the_reported_standard_error_matches_the_scatter_over_noise_seeds(half):
     from radiokit.enhance import compression_contrast
-    from radiokit.measure import change_ratio_se, improvement_factor, improvement_factor_se
+    from radiokit.measure import change_ratio, change_ratio_se, improvement_factor, improvement_factor_se
 
     inc, bg = _rois(half)
     rng = np.random.default_rng(41)
     ifs, if_ses, crs, cr_ses = [], [], [], []
-    for _ in range(300):
+    for i in range(300):
         ref, reg = _pair(rng)
         ifs.append(improvement_factor(compression_contrast(ref, reg, 1.0), ref, inc, bg))
-        if_ses.append(improvement_factor_se(ref, reg, 1.0, inc, bg))
-        cr, se, reason = change_ratio_se(reg, ref, inc, bg)
-        assert reason == "" and math.isfinite(cr)
-        crs.append(cr)
-        cr_ses.append(se)
+        crs.append(change_ratio(reg, ref, inc, bg))
+        # The scatter needs the 300 seeds (its std to 1/sqrt(2 * 299) = 4 %); the reported SE, 4x
+        # the cost, varies 10-12 % from seed to seed, so its RMS over every 5th seed is good to
+        # 0.12 / sqrt(60) = 1.5 % (all 300 seeds read within 1.2 % of this)
+        if i % 5 == 0:
+            if_ses.append(improvement_factor_se(ref, reg, 1.0, inc, bg))
+            cr, se, reason = change_ratio_se(reg, ref, inc, bg)
+            assert reason == "" and math.isfinite(cr) and math.isclose(cr, crs[-1], rel_tol=1e-12)
+            cr_ses.append(se)
     # the measurements are unbiased around the closed form, so the scatter is the noise's
     exact_if = 1 + (D_INC - D_BG) / (INC_REF - BG_REF)
     assert abs(np.mean(ifs) - exact_if) < 4 * np.std(ifs) / math.sqrt(len(ifs))
