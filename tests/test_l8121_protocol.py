@@ -345,6 +345,62 @@ def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
             src.on(60, 250)
 
 
+_STANDBY_READING = {
+    "A": [("SAR", "SAR 2 0 0 0 0 0 0"), ("SIN", "SIN 0")],
+    "B": [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")],
+}
+
+
+def _on_with_after_xon(dialect, after):
+    """ON_60_250 with ``after`` put right after the XON's echo, before the first beam reading."""
+    on = ON_60_250[dialect]
+    i = on.index(("XON", "XON")) + 1
+    return on[:i] + after + on[i:]
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_on_waits_for_a_state_that_follows_the_xon_echo(dialect):
+    """L8121.md: XON is echoed, and the measured values "ramp towards the set values over a few
+    seconds after XON"; it does not say STS reads X-rays on by the time the echo is in. A unit
+    whose state follows a poll later (as the switch-off allows STS to lag XOF: off_confirm_s) was
+    switched off at once, "beam dropped: state STANDBY", a beam that never came on."""
+    pairs = CONNECT[dialect] + _on_with_after_xon(dialect, _STANDBY_READING[dialect]) + OFF[dialect]
+    with expected_protocol(dialect, pairs) as src:
+        beam = src.on(60, 250)
+        assert (beam["voltage_kv"], beam["current_ua"]) == (60.0, 250.0)
+        assert src.off() == SourceState.STANDBY
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_that_does_not_come_on_after_xon_is_said_so_and_switched_off(dialect):
+    """Standby still after ``xon_start_s``: the XON was echoed and nothing came on. Switched off
+    (the tube may yet follow), named for what it is, not a dropped beam."""
+    on = ON_60_250[dialect]
+    pairs = CONNECT[dialect] + on[: on.index(("XON", "XON")) + 1] + _STANDBY_READING[dialect]
+    pairs += OFF[dialect] + [("SER", "SER 0")]
+    with expected_protocol(dialect, pairs, xon_start_s=0.0) as src:
+        with pytest.raises(
+            SourceFault, match=r"X-rays did not come on: state STANDBY .*after XON.*X-rays switched off"
+        ):
+            src.on(60, 250)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_read_on_then_standby_while_ramping_is_a_dropped_beam_at_once(dialect):
+    """The wait for the state to follow XON ends with its first X-rays-on reading: standby after
+    that is the beam dropping, switched off at once (xon_start_s is long here)."""
+    ramping = {
+        "A": [("SAR", "SAR 3 10 10 0 0 0 0"), ("SIN", "SIN 0"), ("SAR", "SAR 2 0 0 0 0 0 0")],
+        "B": [("STS", "XON"), ("SHV", "SHV 10.0kV"), ("SCU", "SCU 10uA"), ("SIN", "INTER LOCK ON"), ("STS", "STANDBY")],
+    }[dialect]
+    on = ON_60_250[dialect]
+    pairs = CONNECT[dialect] + on[: on.index(("XON", "XON")) + 1] + ramping + OFF[dialect]
+    pairs += [_STANDBY_READING[dialect][1], ("SER", "SER 0")]  # SIN after the XOF, for the message
+    with expected_protocol(dialect, pairs, xon_start_s=10.0) as src:
+        with pytest.raises(SourceFault, match="beam dropped: state STANDBY instead of XRAY_ON; X-rays switched off"):
+            src.on(60, 250)
+
+
 @pytest.mark.parametrize(
     "dialect, pairs, message",
     [
