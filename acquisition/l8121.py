@@ -2503,7 +2503,9 @@ class L8121:
         kv_i, ua_i = self.validate(kv, ua, exposure=beam_on)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
-            _, old_ua = self.setpoint()
+            # while on, B's SPV/SPC read the presets (PHV/PCU), which HIV/CUR are not said to change
+            # (L8121.md): the tube's values are the ones this driver last set and saw stable
+            _, old_ua = self._beam if beam_on and self.dialect is DIALECT_B else self.setpoint()
             if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
                 self._do(voltage, kv_i)
                 self._do(current, ua_i)

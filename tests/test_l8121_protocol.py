@@ -583,3 +583,60 @@ def test_reply_fits_the_command_by_the_dialects_grammar(dialect, sent, reply, fi
     from acquisition.l8121 import DIALECTS
 
     assert DIALECTS[dialect].reply_fits(sent, reply) is fits
+
+
+class _BPresetsApart:
+    """Dialect B as L8121.md gives it: ``PHV``/``PCU`` set the presets (read by ``SPV``/``SPC``)
+    while X-rays are off, ``HIV``/``CUR`` the tube's values while on; the notes do not say that
+    one changes the other, so here neither does. Records the highest power the tube was set to."""
+
+    def __init__(self):
+        self.preset, self.tube, self.on, self.peak_w = [40.0, 0.0], [0.0, 0.0], False, 0.0
+        self.port, self.baudrate, self.is_open = "b-presets", None, True
+
+    def _set(self, values, word, arg):
+        values[word in ("PCU", "CUR")] = int(arg) / (10 if word in ("PHV", "HIV") else 1)
+        if self.on:
+            self.peak_w = max(self.peak_w, self.tube[0] * self.tube[1] / 1000)
+        return f"{word} {arg}"
+
+    def query(self, line):
+        word, _, arg = line.partition(" ")
+        if word in ("PHV", "PCU") and not self.on:
+            return self._set(self.preset, word, arg)
+        if word in ("HIV", "CUR") and self.on:
+            return self._set(self.tube, word, arg)
+        if word in ("XON", "XOF"):
+            self.on, self.tube = word == "XON", list(self.preset)
+            self.peak_w = max(self.peak_w, self.tube[0] * self.tube[1] / 1000 if self.on else 0)
+            return word
+        kv, ua = self.tube if self.on else (0, 0)
+        replies = {
+            "SRL": "REMOTE",
+            "STS": "XON" if self.on else "STANDBY",
+            "DAG": "AGING 1 0 END",
+            "SIN": "INTER LOCK ON",
+            "SER": "SER 0",
+            "SPV": f"SPV {self.preset[0]:.1f}kV",
+            "SPC": f"SPC {self.preset[1]:.0f}uA",
+            "SHV": f"SHV {kv:.1f}kV",
+            "SCU": f"SCU {ua:.0f}uA",
+        }
+        return replies.get(word, "ERROR")
+
+    def close(self):
+        self.is_open = False
+
+
+def test_b_a_change_while_on_orders_its_commands_by_the_tube_values_not_the_presets():
+    """At watts_max 30: on at 60 kV 250 µA, then 60 kV 500 µA (30 W), then 100 kV 200 µA (20 W).
+    The order of HIV and CUR was chosen from SPV/SPC, which in B read the presets (still 250 µA),
+    not the 500 µA HIV/CUR had set: HIV 1000 went first and asked the tube for 100 kV at 500 µA,
+    50 W, beyond the configured 30 W."""
+    link = _BPresetsApart()
+    with L8121(link, dialect="B", poll_s=0.001, off_confirm_s=0.0, watts_max=30) as src:
+        src.on(60, 250)
+        src.set_values(60, 500)
+        src.set_values(100, 200)
+        assert link.tube == [100, 200]
+    assert not link.on and link.peak_w <= 30 + 1e-9, link.peak_w
