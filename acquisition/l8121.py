@@ -309,6 +309,11 @@ class SourceConfig:
     poll_s: float = 0.2
     warmup_timeout_s: float = 1800.0
     warmup_start_s: float = 5.0  # the start command answered, still "warm-up needed" after this: not started
+    # L8121.md says XON is echoed and the measured values ramp over seconds after it, not that STS
+    # reads X-rays on by the time the echo is in: standby is waited for this long after XON (the
+    # interlock and an overload watched every poll) before the beam is called not come on -- as
+    # off_confirm_s lets STS lag XOF. 0: at once
+    xon_start_s: float = 1.0
     # the controller's power-on checks (A: STS 6 self-test; B: STS ERROR, pre-heating; either's "not
     # ready" with the interlock closed) may still run when a session starts: warm_up() and on() wait
     # this long for them to finish (L8121.md gives no duration)
@@ -365,6 +370,7 @@ class SourceConfig:
             "poll_s",
             "warmup_timeout_s",
             "warmup_start_s",
+            "xon_start_s",
             "ready_timeout_s",
             "off_confirm_s",
             "beam_drop_fraction",
@@ -2497,7 +2503,9 @@ class L8121:
         kv_i, ua_i = self.validate(kv, ua, exposure=beam_on)
         voltage, current = ("voltage", "current") if beam_on else ("preset_voltage", "preset_current")
         try:
-            _, old_ua = self.setpoint()
+            # while on, B's SPV/SPC read the presets (PHV/PCU), which HIV/CUR are not said to change
+            # (L8121.md): the tube's values are the ones this driver last set and saw stable
+            _, old_ua = self._beam if beam_on and self.dialect is DIALECT_B else self.setpoint()
             if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
                 self._do(voltage, kv_i)
                 self._do(current, ua_i)
@@ -2771,9 +2779,10 @@ class L8121:
         B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; the
         interlock again and the controller's error code (``SER``: anything but 0 refuses, nothing
         reset); ``XON``; poll every ``poll_s`` until the measured values are within
-        ``kv_tolerance`` / ``ua_tolerance`` of the set ones. Any failure or interruption after
-        ``XON`` switches off before the exception propagates, and so does a controller that
-        answers the ``XON`` with a warm-up (``AGING``).
+        ``kv_tolerance`` / ``ua_tolerance`` of the set ones (the state may still read standby for
+        ``xon_start_s`` after the echo, the interlock watched; past it, "X-rays did not come on").
+        Any failure or interruption after ``XON`` switches off before the exception propagates,
+        and so does a controller that answers the ``XON`` with a warm-up (``AGING``).
 
         Returns
         -------
@@ -2815,7 +2824,7 @@ class L8121:
             self._do("xray_on")
             t0 = time.monotonic()
             self._beam = (kv_i, ua_i)
-            reading = self._wait_stable(kv_i, ua_i, t0)
+            reading = self._wait_stable(kv_i, ua_i, t0, after_xon=True)
         except BaseException:
             self._off_quietly()
             raise
@@ -2875,12 +2884,19 @@ class L8121:
             return "controller not ready"
         return "controller not ready" if closed else "controller not ready: the interlock is open (close it first)"
 
-    def _wait_stable(self, kv: int, ua: int, t0: float) -> dict[str, Any]:
+    def _wait_stable(self, kv: int, ua: int, t0: float, *, after_xon: bool = False) -> dict[str, Any]:
+        """Poll until the measured values are within tolerance of ``kv``, ``ua``. ``after_xon``: the
+        state may still read standby for ``xon_start_s`` (never once it has read X-rays on)."""
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
+        seen_on = False
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
+            seen_on |= state == SourceState.XRAY_ON
+            if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, seconds):
+                time.sleep(c.poll_s)
+                continue
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
@@ -2905,6 +2921,19 @@ class L8121:
                 )
                 raise self._switched_off(DeviceError, why, off, failed) from failed
             time.sleep(c.poll_s)
+
+    def _coming_on(self, state: SourceState, kv: float, ua: float, seconds: float) -> bool:
+        """Whether a reading after XON, before the first X-rays-on one, is the state still following
+        the echo: standby within ``xon_start_s`` (L8121.md ties no state to XON's echo; the values
+        "ramp ... over a few seconds after XON"). The interlock is watched meanwhile; standby past
+        ``xon_start_s`` is a beam that did not come on, switched off all the same."""
+        if state != SourceState.STANDBY or getattr(self._transport, "watchdog_off", None):
+            return False  # (a standby the guardian's watchdog made is its switch-off: _fault_reason names it)
+        if not self.interlock_closed():
+            self._trip(self._fault_reason(state, kv, ua, ramping=True, interlock_closed=False) or "interlock open")
+        if seconds > self.config.xon_start_s:
+            self._trip(f"X-rays did not come on: state STANDBY {seconds:.1f} s after XON was answered")
+        return True
 
     def _fault_reason(
         self,

@@ -345,6 +345,62 @@ def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
             src.on(60, 250)
 
 
+_STANDBY_READING = {
+    "A": [("SAR", "SAR 2 0 0 0 0 0 0"), ("SIN", "SIN 0")],
+    "B": [("STS", "STANDBY"), ("SIN", "INTER LOCK ON")],
+}
+
+
+def _on_with_after_xon(dialect, after):
+    """ON_60_250 with ``after`` put right after the XON's echo, before the first beam reading."""
+    on = ON_60_250[dialect]
+    i = on.index(("XON", "XON")) + 1
+    return on[:i] + after + on[i:]
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_on_waits_for_a_state_that_follows_the_xon_echo(dialect):
+    """L8121.md: XON is echoed, and the measured values "ramp towards the set values over a few
+    seconds after XON"; it does not say STS reads X-rays on by the time the echo is in. A unit
+    whose state follows a poll later (as the switch-off allows STS to lag XOF: off_confirm_s) was
+    switched off at once, "beam dropped: state STANDBY", a beam that never came on."""
+    pairs = CONNECT[dialect] + _on_with_after_xon(dialect, _STANDBY_READING[dialect]) + OFF[dialect]
+    with expected_protocol(dialect, pairs) as src:
+        beam = src.on(60, 250)
+        assert (beam["voltage_kv"], beam["current_ua"]) == (60.0, 250.0)
+        assert src.off() == SourceState.STANDBY
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_that_does_not_come_on_after_xon_is_said_so_and_switched_off(dialect):
+    """Standby still after ``xon_start_s``: the XON was echoed and nothing came on. Switched off
+    (the tube may yet follow), named for what it is, not a dropped beam."""
+    on = ON_60_250[dialect]
+    pairs = CONNECT[dialect] + on[: on.index(("XON", "XON")) + 1] + _STANDBY_READING[dialect]
+    pairs += OFF[dialect] + [("SER", "SER 0")]
+    with expected_protocol(dialect, pairs, xon_start_s=0.0) as src:
+        with pytest.raises(
+            SourceFault, match=r"X-rays did not come on: state STANDBY .*after XON.*X-rays switched off"
+        ):
+            src.on(60, 250)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_read_on_then_standby_while_ramping_is_a_dropped_beam_at_once(dialect):
+    """The wait for the state to follow XON ends with its first X-rays-on reading: standby after
+    that is the beam dropping, switched off at once (xon_start_s is long here)."""
+    ramping = {
+        "A": [("SAR", "SAR 3 10 10 0 0 0 0"), ("SIN", "SIN 0"), ("SAR", "SAR 2 0 0 0 0 0 0")],
+        "B": [("STS", "XON"), ("SHV", "SHV 10.0kV"), ("SCU", "SCU 10uA"), ("SIN", "INTER LOCK ON"), ("STS", "STANDBY")],
+    }[dialect]
+    on = ON_60_250[dialect]
+    pairs = CONNECT[dialect] + on[: on.index(("XON", "XON")) + 1] + ramping + OFF[dialect]
+    pairs += [_STANDBY_READING[dialect][1], ("SER", "SER 0")]  # SIN after the XOF, for the message
+    with expected_protocol(dialect, pairs, xon_start_s=10.0) as src:
+        with pytest.raises(SourceFault, match="beam dropped: state STANDBY instead of XRAY_ON; X-rays switched off"):
+            src.on(60, 250)
+
+
 @pytest.mark.parametrize(
     "dialect, pairs, message",
     [
@@ -527,3 +583,60 @@ def test_reply_fits_the_command_by_the_dialects_grammar(dialect, sent, reply, fi
     from acquisition.l8121 import DIALECTS
 
     assert DIALECTS[dialect].reply_fits(sent, reply) is fits
+
+
+class _BPresetsApart:
+    """Dialect B as L8121.md gives it: ``PHV``/``PCU`` set the presets (read by ``SPV``/``SPC``)
+    while X-rays are off, ``HIV``/``CUR`` the tube's values while on; the notes do not say that
+    one changes the other, so here neither does. Records the highest power the tube was set to."""
+
+    def __init__(self):
+        self.preset, self.tube, self.on, self.peak_w = [40.0, 0.0], [0.0, 0.0], False, 0.0
+        self.port, self.baudrate, self.is_open = "b-presets", None, True
+
+    def _set(self, values, word, arg):
+        values[word in ("PCU", "CUR")] = int(arg) / (10 if word in ("PHV", "HIV") else 1)
+        if self.on:
+            self.peak_w = max(self.peak_w, self.tube[0] * self.tube[1] / 1000)
+        return f"{word} {arg}"
+
+    def query(self, line):
+        word, _, arg = line.partition(" ")
+        if word in ("PHV", "PCU") and not self.on:
+            return self._set(self.preset, word, arg)
+        if word in ("HIV", "CUR") and self.on:
+            return self._set(self.tube, word, arg)
+        if word in ("XON", "XOF"):
+            self.on, self.tube = word == "XON", list(self.preset)
+            self.peak_w = max(self.peak_w, self.tube[0] * self.tube[1] / 1000 if self.on else 0)
+            return word
+        kv, ua = self.tube if self.on else (0, 0)
+        replies = {
+            "SRL": "REMOTE",
+            "STS": "XON" if self.on else "STANDBY",
+            "DAG": "AGING 1 0 END",
+            "SIN": "INTER LOCK ON",
+            "SER": "SER 0",
+            "SPV": f"SPV {self.preset[0]:.1f}kV",
+            "SPC": f"SPC {self.preset[1]:.0f}uA",
+            "SHV": f"SHV {kv:.1f}kV",
+            "SCU": f"SCU {ua:.0f}uA",
+        }
+        return replies.get(word, "ERROR")
+
+    def close(self):
+        self.is_open = False
+
+
+def test_b_a_change_while_on_orders_its_commands_by_the_tube_values_not_the_presets():
+    """At watts_max 30: on at 60 kV 250 µA, then 60 kV 500 µA (30 W), then 100 kV 200 µA (20 W).
+    The order of HIV and CUR was chosen from SPV/SPC, which in B read the presets (still 250 µA),
+    not the 500 µA HIV/CUR had set: HIV 1000 went first and asked the tube for 100 kV at 500 µA,
+    50 W, beyond the configured 30 W."""
+    link = _BPresetsApart()
+    with L8121(link, dialect="B", poll_s=0.001, off_confirm_s=0.0, watts_max=30) as src:
+        src.on(60, 250)
+        src.set_values(60, 500)
+        src.set_values(100, 200)
+        assert link.tube == [100, 200]
+    assert not link.on and link.peak_w <= 30 + 1e-9, link.peak_w
