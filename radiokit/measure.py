@@ -600,53 +600,47 @@ _NEAR = ((0, 1), (1, 0), (1, 1), (1, -1))
 _RING2 = ((0, 2), (1, 2), (2, 2), (2, 1), (2, 0), (2, -1), (2, -2), (1, -2))
 
 
-def _difference_var(x: np.ndarray, dr: int, dc: int) -> float:
-    """Robust variance of ``x(p + h) - x(p)``: of the differences within three standard
-    deviations of their centre (a few rounds from the median absolute deviation), so an edge
-    crossing some of them does not count, and about their centre, so the object's slope does not
-    either. First differences, not second: on a window crossing an inclusion's edge a second
-    difference spans twice the pixels, and read a step's noise 20-70 % high (first: 0-20 %)."""
-    rows, cols = x.shape
-    ar, ac = abs(dr), abs(dc)
-
-    def part(tr, tc):
-        return x[ar + tr : rows - ar + tr, ac + tc : cols - ac + tc]
-
-    return _robust_var(part(dr, dc) - part(0, 0))[0]
+#: lags of more differences than this are read one at a time: the batch's padded passes and sorts
+#: cost more than numpy's per-call overhead saves from about a 50 x 50 px window
+#: (benchmarks/bench_roi_se.py)
+_BATCH_BELOW = 2500
 
 
-def _one_pixel_se(x: np.ndarray, h: int, w: int) -> float:
-    """The standard error of an ``h x w`` ROI's mean with the noise correlated between next
-    neighbours only (frame means, bilinear resampling): its variance from the ring of lags two
-    pixels out, the correlation from the next neighbours'."""
-    ring = [_difference_var(x, *lag) for lag in _RING2]
-    ring = [v for v in ring if math.isfinite(v)]
-    if not ring:
-        return math.nan
-    s2 = float(np.median(ring)) / 2.0
-    n = h * w
-    if s2 <= 0:
-        return 0.0
-    f = 1.0
-    for dr, dc in _NEAR:
-        v = _difference_var(x, dr, dc)
-        if not math.isfinite(v):
-            continue
-        rho = min(1.0, max(-1.0, 1.0 - v / (2.0 * s2)))
-        f += 2 * rho * max(0.0, 1 - abs(dr) / h) * max(0.0, 1 - abs(dc) / w)
-    # an estimate's noise must not claim more than n independent pixels' worth of quiet
-    f = min(max(f, 0.25), float(n))
-    return math.sqrt(s2 * f / n)
+def _robust_vars(e: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust variances of the rows of ``e`` (one row of differences ``x(p + h) - x(p)`` per lag,
+    padded) over the pairs ``use`` marks, and their centres: of the differences within three
+    standard deviations of their centre (a few rounds from the median absolute deviation), so an
+    edge crossing some of them does not count, and about their centre, so the object's slope does
+    not either. First differences, not second: on a window crossing an inclusion's edge a second
+    difference spans twice the pixels, and read a step's noise 20-70 % high (first: 0-20 %). All
+    lags in one call: a window holds a few hundred differences a lag, and numpy's per-call cost was
+    most of the time (benchmarks/bench_roi_se.py). ``nan`` for a row of fewer than 8 pairs."""
+    if e.shape[1] > _BATCH_BELOW:
+        return tuple(np.array(v) for v in zip(*(_robust_var(r, u) for r, u in zip(e, use))))
+    n_use = use.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centre = _row_medians(e, use, n_use)
+        scale = _MAD_SIGMA * _row_medians(np.abs(e - centre[:, None]), use, n_use)
+        live = n_use >= 8
+        for _ in range(5):
+            kept = use & (np.abs(e - centre[:, None]) <= 3 * scale[:, None])
+            n_kept = kept.sum(axis=1)
+            live &= (n_kept >= 8) & (scale != 0)
+            if not live.any():
+                break
+            mean = np.where(kept, e, 0.0).sum(axis=1) / n_kept
+            d = np.where(kept, e - mean[:, None], 0.0)
+            std = np.sqrt((d * d).sum(axis=1) / n_kept)
+            centre = np.where(live, mean, centre)
+            scale = np.where(live, std / math.sqrt(_CLIPPED_VAR), scale)
+    return np.where(n_use >= 8, scale**2, np.nan), centre
 
 
-def _robust_var(e: np.ndarray, keep: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """Robust variance of the differences ``e`` (one per pixel pair), and their residuals: of the
-    differences within three standard deviations of their centre, as :func:`_difference_var`
-    reads them, over the pairs ``keep`` marks (all without)."""
-    ev = e.ravel()
-    use = np.ones(ev.size, bool) if keep is None else keep.ravel()
+def _robust_var(ev: np.ndarray, use: np.ndarray) -> tuple[float, float]:
+    """:func:`_robust_vars` of one lag's differences ``ev`` (1-d) over the pairs ``use`` marks:
+    the variance and the centre."""
     if use.sum() < 8:
-        return math.nan, np.zeros_like(e)
+        return math.nan, math.nan
     centre = np.median(ev[use])
     scale = _MAD_SIGMA * np.median(np.abs(ev[use] - centre))
     # then clipped at 3 scales, a few rounds: a median absolute deviation alone read 20-40 % high
@@ -656,28 +650,94 @@ def _robust_var(e: np.ndarray, keep: np.ndarray | None = None) -> tuple[float, n
         if kept.sum() < 8 or scale == 0:
             break
         centre, scale = ev[kept].mean(), ev[kept].std() / math.sqrt(_CLIPPED_VAR)
-    return float(scale**2), (ev - centre).reshape(e.shape)
+    return float(scale**2), float(centre)
 
 
-def _semivariances(x: np.ndarray, max_lag: int) -> np.ndarray:
-    """``Var(x(p + k) - x(p)) / 2`` along the columns (``x``'s last axis) for ``k = 1..max_lag``.
+def _row_medians(e: np.ndarray, use: np.ndarray, n_use: np.ndarray) -> np.ndarray:
+    """The median of each row of ``e`` over the entries ``use`` marks (as ``np.median`` reads it:
+    the mean of the two middle values for an even count); the unused sort last as ``inf``."""
+    if e.shape[1] == 0:
+        return np.full(len(e), np.nan)
+    s = np.sort(np.where(use, e, np.inf), axis=1)
+    i = np.arange(len(e))
+    lo, hi = np.maximum((n_use - 1) // 2, 0), np.maximum(n_use // 2, 0)
+    return (s[i, lo] + s[i, hi]) / 2
+
+
+def _one_pixel_se(x: np.ndarray, h: int, w: int) -> float:
+    """The standard error of an ``h x w`` ROI's mean with the noise correlated between next
+    neighbours only (frame means, bilinear resampling): its variance from the ring of lags two
+    pixels out, the correlation from the next neighbours'. The differences ``x(p + h) - x(p)``,
+    one lag a row, are trimmed by ``|h|`` on each side, so each lag reads the same pixels."""
+    rows, cols = x.shape
+    lags = _RING2 + _NEAR
+    e = np.zeros((len(lags), rows, cols))
+    use = np.zeros(e.shape, bool)
+    for i, (dr, dc) in enumerate(lags):
+        ar, ac = abs(dr), abs(dc)
+        r, c = rows - 2 * ar, cols - 2 * ac
+        if r > 0 and c > 0:
+            e[i, :r, :c] = x[ar + dr : ar + dr + r, ac + dc : ac + dc + c] - x[ar : ar + r, ac : ac + c]
+            use[i, :r, :c] = True
+    var, _ = _robust_vars(e.reshape(len(lags), -1), use.reshape(len(lags), -1))
+    ring = [float(v) for v in var[: len(_RING2)] if math.isfinite(v)]
+    if not ring:
+        return math.nan
+    s2 = float(np.median(ring)) / 2.0
+    n = h * w
+    if s2 <= 0:
+        return 0.0
+    f = 1.0
+    for (dr, dc), v in zip(_NEAR, var[len(_RING2) :]):
+        if not math.isfinite(v):
+            continue
+        rho = min(1.0, max(-1.0, 1.0 - float(v) / (2.0 * s2)))
+        f += 2 * rho * max(0.0, 1 - abs(dr) / h) * max(0.0, 1 - abs(dc) / w)
+    # an estimate's noise must not claim more than n independent pixels' worth of quiet
+    f = min(max(f, 0.25), float(n))
+    return math.sqrt(s2 * f / n)
+
+
+def _semivariances(x: np.ndarray, max_lag: int) -> tuple[np.ndarray, np.ndarray]:
+    """``Var(x(p + k) - x(p)) / 2`` for ``k = 1..max_lag`` along ``x``'s rows (first axis) and
+    along its columns, all lags of both axes in one :func:`_robust_vars` call.
 
     Pairs that straddle an edge are left out: an edge is where a next-neighbour difference stands
     far (5 standard deviations) from the noise's. Clipping alone does not do: at a lag of ``k``
     pixels a step spoils ``k`` pairs a row, most of a window's at the lags correlated noise needs.
     """
-    rows, cols = x.shape
-    out = np.full(max_lag, np.nan)
-    if cols < 2:
-        return out
-    s1, r1 = _robust_var(x[:, 1:] - x[:, :-1])
-    edge = np.abs(r1) > 5 * math.sqrt(s1) if s1 > 0 else np.zeros(r1.shape, bool)
-    crossed = np.concatenate([np.zeros((rows, 1)), np.cumsum(edge, axis=1)], axis=1)
-    for k in range(1, min(max_lag, cols - 1) + 1):
-        e = x[:, k:] - x[:, :-k]
-        keep = (crossed[:, k:] - crossed[:, :-k]) == 0
-        v, _ = _robust_var(e, keep if keep.sum() >= max(8, keep.size // 4) else None)
-        out[k - 1] = v / 2
+    axes = (x.T, x)
+    crossed = _edges_crossed(axes)
+    e = np.zeros((2, max_lag) + x.shape)
+    use = np.zeros(e.shape, bool)
+    for a, (y, cr) in enumerate(zip(axes, crossed)):
+        rows, cols = y.shape
+        if cols < 2:
+            continue
+        for k in range(1, min(max_lag, cols - 1) + 1):
+            ek, uk = e[a, k - 1].reshape(rows, cols), use[a, k - 1].reshape(rows, cols)
+            ek[:, : cols - k] = y[:, k:] - y[:, :-k]
+            keep = (cr[:, k:] - cr[:, :-k]) == 0
+            # too few pairs clear of edges: all of them, the clipping alone
+            uk[:, : cols - k] = keep if keep.sum() >= max(8, keep.size // 4) else True
+    var, _ = _robust_vars(e.reshape(2 * max_lag, -1), use.reshape(2 * max_lag, -1))
+    return var[:max_lag] / 2, var[max_lag:] / 2
+
+
+def _edges_crossed(axes) -> list[np.ndarray]:
+    """For each of ``axes`` (the same window, transposed or not), the number of edges crossed
+    from each row's start to each pixel: where a next-neighbour difference stands 5 standard
+    deviations from the noise's."""
+    diffs = [y[:, 1:] - y[:, :-1] if y.shape[1] >= 2 else np.zeros((y.shape[0], 0)) for y in axes]
+    size = max(d.size for d in diffs)
+    e, use = np.zeros((len(diffs), size)), np.zeros((len(diffs), size), bool)
+    for i, d in enumerate(diffs):
+        e[i, : d.size], use[i, : d.size] = d.ravel(), True
+    var, centre = _robust_vars(e, use)
+    out = []
+    for d, s1, c in zip(diffs, var, centre):
+        edge = np.abs(d - c) > 5 * math.sqrt(s1) if s1 > 0 else np.zeros(d.shape, bool)
+        out.append(np.concatenate([np.zeros((d.shape[0], 1)), np.cumsum(edge, axis=1)], axis=1))
     return out
 
 
@@ -728,8 +788,10 @@ def roi_mean_se(image, roi: ROI, *, min_side: int = 16) -> float:
             x = np.where(np.isfinite(x), x, np.nanmedian(x[np.isfinite(x)]) if np.isfinite(x).any() else 0.0)
         if margin == 2:
             first = x
-        g_r, g_c = _semivariances(x.T, _MAX_LAG), _semivariances(x, _MAX_LAG)
-        g = np.array([np.nanmean(v) if np.isfinite(v).any() else np.nan for v in zip(g_r, g_c)])
+        g_r, g_c = _semivariances(x, _MAX_LAG)
+        # the two axes' mean where both are read (np.nanmean's arithmetic), else the one read
+        fr, fc = np.isfinite(g_r), np.isfinite(g_c)
+        g = np.where(fr & fc, (g_r + g_c) / 2, np.where(fr, g_r, g_c))
         if not (np.isfinite(g[0]) and np.isfinite(g[1])):
             return math.nan
         lag, a = _correlation_reach(g[0], g[1])
