@@ -712,6 +712,8 @@ class _Watch:
         from acquisition.l8121 import Command
 
         head = command.split(" ", 1)[0]
+        if head == "XOF":  # (as sent(): a standby read after it confirms the switch-off)
+            self.starting = False
         for what, words in self.beam_settings.items():
             # the count as the unit echoed it (it holds the value): one it refused (ERROR; B's HIV
             # while off, without the PHV preset) set nothing, and counted, let XON through after a
