@@ -656,6 +656,11 @@ class _Watch:
         # the watchdog's confirmed switch-off, not yet told to the acquiring process: it goes out
         # with its next reply's W line, so that its error names the guardian, not a dropped beam
         self.watchdog_untold = ""
+        # an XON (or WUP) sent, no XOF since, and the state not yet read on: the driver lets STS
+        # read standby for xon_start_s after XON's echo (L8121.md ties no state to it), so a
+        # standby then is a beam that may still come on, not "off" -- taken as off, it disarmed the
+        # watchdog while the acquiring process waited (review s44rr2)
+        self.starting = False
 
     def exchanged(self, seen: int, may_have_been_on: bool, note, port: str) -> None:
         """After an exchange: was the link reopened (``seen``: the check's count before) while X-rays
@@ -681,8 +686,11 @@ class _Watch:
         return moved
 
     def sent(self, command: str) -> None:
-        if command.split(" ", 1)[0] in ("XON", "WUP"):
-            self.may_be_on = True
+        head = command.split(" ", 1)[0]
+        if head in ("XON", "WUP"):
+            self.may_be_on = self.starting = True
+        elif head == "XOF":
+            self.starting = False
 
     def refusal(self, command: str, port: str) -> str | None:
         """Why ``command`` (XON or WUP) is not passed on, or None: the link was reopened and the
@@ -704,6 +712,8 @@ class _Watch:
         from acquisition.l8121 import Command
 
         head = command.split(" ", 1)[0]
+        if head == "XOF":  # (as sent(): a standby read after it confirms the switch-off)
+            self.starting = False
         for what, words in self.beam_settings.items():
             # the count as the unit echoed it (it holds the value): one it refused (ERROR; B's HIV
             # while off, without the PHV preset) set nothing, and counted, let XON through after a
@@ -724,8 +734,8 @@ class _Watch:
             except ValueError:  # not a state: it says nothing either way
                 return
             if state.emitting:
-                self.may_be_on = True
-            elif state.confirms_off:
+                self.may_be_on, self.starting = True, False
+            elif state.confirms_off and not self.starting:
                 self.may_be_on = False
             # else B's ERROR (read as pre-heating, and also what a refused query looks like): the
             # driver never takes it as "off", so neither does the watchdog -- it stays as it was
@@ -779,6 +789,7 @@ def _watchdog_off(link, config, note, watch: _Watch, watchdog_s: float) -> bool:
         watch.untold += moved
     if outcome == "off":
         watch.may_be_on, watch.warned, watch.silent_since, watch.retries = False, False, None, 0
+        watch.starting = False  # (its XOF did not pass through sent())
         watch.watchdog_untold = (
             f"the X-ray guardian's watchdog switched X-rays off (confirmed by STS: {watch.off_state}): the "
             f"acquiring process had sent nothing for {watchdog_s:g} s with X-rays on (suspended or hung)"

@@ -3373,10 +3373,41 @@ def test_the_guardians_watch_is_not_disarmed_by_a_reply_the_driver_never_takes_a
     watch.sent("XON")
     watch.replied(query, "ERROR")
     assert watch.may_be_on
+    watch.replied(query, "XON")  # (a standby before the beam read on may be XON's lag: see below)
     watch.replied(query, "STANDBY")
     assert not watch.may_be_on
     watch.replied(query, "XON")
     assert watch.may_be_on
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_standby_read_while_xon_comes_on_keeps_the_guardians_watchdog_armed(dialect):
+    """Found in review s44rr2: on() now lets STS read standby for xon_start_s after XON's echo (the
+    state following the echo late), but the guardian took that standby as "off" and disarmed its
+    watchdog: a process suspended in that wait left the beam that then came on with nobody to
+    switch it off. After XON (or A's WUP) a standby disarms only once the beam has read on, or
+    after an XOF."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    watch = _Watch(SimpleNamespace(dialect=dialect))
+    query = watch.state_query.command
+    standby, on = ("STS 2", "STS 3") if dialect == "A" else ("STANDBY", "XON")
+    watch.replied(query, standby)
+    assert not watch.may_be_on  # read off before anything was sent: disarmed
+    for start in ("XON", "WUP") if dialect == "A" else ("XON",):
+        watch.sent(start)
+        watch.replied(start, start)
+        watch.replied(query, standby)  # the state not yet following the echo
+        assert watch.may_be_on, start
+        watch.sent("XOF")  # the driver's switch-off: its confirmation disarms
+        watch.replied(query, standby)
+        assert not watch.may_be_on, start
+    watch.sent("XON")
+    watch.replied(query, on)
+    watch.replied(query, standby)  # on, then standby: the beam went off (the driver trips on it)
+    assert not watch.may_be_on
 
 
 def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
