@@ -824,7 +824,8 @@ def _one_fault(exc, src):
     failed as the link closed after a fault (``exc.fault``) is said after that fault: the line
     said only "could not confirm X-rays off", not why it was switching off (s43)."""
     failed = getattr(src, "off_failed", None)
-    if getattr(exc, "operate_switch", None) and failed is not None and "operate switch is" in str(failed):
+    # the switch-off's error names the switch (its field, not its words: they are the operator's)
+    if getattr(exc, "operate_switch", None) and getattr(failed, "operate_switch", None) is not None:
         return failed
     fault = getattr(exc, "fault", None)
     if isinstance(fault, Exception) and str(fault) and str(fault) not in str(exc):
@@ -903,7 +904,7 @@ def _source_error_code(exc, src, args) -> int:
         _tube_warning(src)
         return 3
     state = src.confirmed_off or src.last_state
-    after_all = "could not confirm X-rays off" in str(exc)
+    after_all = getattr(exc, "off_not_confirmed", False)  # an off() that could not confirm
     # said already: by the error line, or by "XOF sent anyway" (off's connect, a guardian gone)
     said = getattr(exc, "tube_said", False) or getattr(exc, "guardian_gone", False)
     said = said or (args.action == "off" and not after_all)
@@ -927,7 +928,7 @@ def _failed_on(exc, src, args):
     off = getattr(exc, "switch_off", None)
     if off is None:
         err = DeviceError(_cli_terms(str(exc), args.port) + after)
-        err.tube_said = bool(after)
+        err.tube_said, err.off_not_confirmed = bool(after), getattr(exc, "off_not_confirmed", False)
         return err
     err = DeviceError(_cli_terms(_off_line(off, after), args.port))
     err.switch_off, err.tube_said = off, off.confirmed or bool(after)

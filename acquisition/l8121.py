@@ -616,6 +616,13 @@ _DEFAULT_TOLERANCES = {"kv_tolerance": 1.0, "ua_tolerance": 5.0}
 #: a fault's note when its switch-off was not confirmed (:attr:`OffOutcome.note`; the command line
 #: words its own line from the outcome's fields)
 OFF_NOT_CONFIRMED = "switching X-rays off could not be confirmed"
+
+
+def _not_remote(switch: str) -> str:
+    """What a switch-off's error adds for B's operate switch at ``switch`` (not REMOTE)."""
+    return f"; the operate switch is {switch} (SRL): remote commands are refused until it is turned to REMOTE"
+
+
 #: the step of a measured kV and µA (A's SAR reads whole numbers; B's SCU whole µA): a narrowed
 #: default tolerance is no finer, where the room allows
 _READING_STEP = 1.0
@@ -3130,7 +3137,7 @@ class L8121:
                 return self._off_state
             self._off_thread, self._off_running = me, True
             self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
-        attempts, last, silent, why = int(self.config.off_attempts), None, False, None
+        attempts, last, silent, switch = int(self.config.off_attempts), None, False, None
         window = max(float(self.config.off_confirm_s), 0.0) / attempts
         try:
             for attempt in range(attempts):
@@ -3147,8 +3154,8 @@ class L8121:
                 # nothing and will not: one STS says whether the tube was off already, no ramp-down
                 # to wait for. A refusal it does not explain (A's ERR while a first XOF ramps the
                 # supply down) keeps the window: the tube may still be going off
-                told = self._why_not_remote() if refused else ""
-                until = time.monotonic() + (0.0 if told else window)
+                told = self._switch_not_remote() if refused else None
+                until = time.monotonic() + (0.0 if told is not None else window)
                 state, last, silent = self._await_off(until, last, silent)
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
@@ -3161,10 +3168,10 @@ class L8121:
                     # no reply to XOF nor STS: another attempt costs two more time-outs and
                     # reaches nobody; the operator must hear it now
                     break
-                if told:
+                if told is not None:
                     # the controller says it will not act (B's operate switch off REMOTE): every
                     # further XOF is refused alike until someone turns it; the operator must hear it now
-                    why = told
+                    switch = told
                     break
                 # an attempt that failed early (a port gone for a moment, a USB adapter coming back
                 # under its name; a refused or garbled STS) waits its window out: the attempts span
@@ -3173,14 +3180,17 @@ class L8121:
                 if attempt + 1 < attempts:
                     time.sleep(max(0.0, until - time.monotonic() - self.config.poll_s))
             # still inside: a failed query here must not call off() again; a silent one is not asked
-            if why is None:
-                why = "; the controller does not answer" if silent else self._why_not_remote()
+            if switch is None and not silent:
+                switch = self._switch_not_remote()
+            why = _not_remote(switch) if switch is not None else "; the controller does not answer" if silent else ""
             tried = f"{attempt + 1} attempt(s)"
             self.off_failed = DeviceError(
                 f"{self.port}: could not confirm X-rays off after {tried} "
                 f"(last: {self._unported(last)}){why}; switch the source off at the controller"
             )
-            self.off_failed.__cause__ = last
+            # the facts a caller decides on, as fields: its message is the operator's, free to be reworded
+            self.off_failed.__cause__, self.off_failed.off_not_confirmed = last, True
+            self.off_failed.operate_switch = switch  # the position it names (None: not named)
         finally:
             with self._turns:
                 self._off_thread, self._off_running = None, False
@@ -3227,17 +3237,16 @@ class L8121:
                 return None, last, False
             time.sleep(self.config.poll_s)
 
-    def _why_not_remote(self) -> str:
-        """B: name a LOCAL operate switch, the likeliest reason a controller refuses XOF."""
+    def _switch_not_remote(self) -> str | None:
+        """B: the operate switch's position when not REMOTE (LOCAL, OFF), the likeliest reason a
+        controller refuses XOF; None when it is REMOTE, unknown, or the dialect has none."""
         if self.dialect is None or "operate_switch" not in self.dialect.readings:
-            return ""
+            return None
         try:
             switch = self.operate_switch()
         except DeviceError:
-            return ""
-        if switch == "REMOTE":
-            return ""
-        return f"; the operate switch is {switch} (SRL): remote commands are refused until it is turned to REMOTE"
+            return None
+        return None if switch == "REMOTE" else switch
 
     def _off_quietly(self) -> None:
         """Best-effort off on an error path: log, never raise over the original exception."""

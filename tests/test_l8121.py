@@ -2660,6 +2660,62 @@ def test_cli_source_command_with_b_operate_switch_local_and_x_rays_on_says_one_e
         assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
 
 
+def _reword_off_failures(monkeypatch, old: str, new: str) -> None:
+    """off()'s unconfirmed switch-off raised with ``old`` reworded to ``new`` in its message, its
+    fields kept: the command line's decisions read the fields, not the words (s44)."""
+    real_off = L8121.off
+
+    def off(self):
+        try:
+            return real_off(self)
+        except DeviceError as exc:
+            exc.args = (str(exc).replace(old, new), *exc.args[1:])
+            raise
+
+    monkeypatch.setattr(L8121, "off", off)
+
+
+def test_cli_source_off_after_all_is_decided_by_a_field_not_the_message(monkeypatch, capsys):
+    """Found (s44): `source off` chose its "X-rays off after all" last line by searching the
+    error for "could not confirm X-rays off": reworded, the confirmed state was never said."""
+    from radiokit.cli import main
+
+    _reword_off_failures(monkeypatch, "could not confirm X-rays off", "X-rays off not confirmed")
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "A"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        capsys.readouterr()
+        model.ramp_down(4.5)
+        assert main(["acquire", "source", "off", *port]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "X-rays off not confirmed after 3 attempt(s)" in err[-2], err
+    assert err[-1].endswith(
+        ": X-rays off after all (a last XOF as the port closed): tube off (confirmed by STS: STANDBY)"
+    )
+    assert not model.xray_on
+
+
+def test_cli_source_operate_switch_line_is_decided_by_a_field_not_the_message(monkeypatch, capsys):
+    """Found (s44): the one error line for B's operate switch off REMOTE was chosen by searching
+    the switch-off's error for "operate switch is": reworded, two `error:` lines again."""
+    from radiokit.cli import main
+
+    _reword_off_failures(monkeypatch, "the operate switch is", "the operate switch reads")
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        port = ["--port", server.url, "--dialect", "B"]
+        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.set_operate_switch("LOCAL")
+        capsys.readouterr()
+        assert main(["acquire", "source", "off", *port]) == 3
+        err = capsys.readouterr().err.strip().splitlines()
+        errors = [line for line in err if line.startswith("error:")]
+        assert len(errors) == 1 and "the operate switch reads LOCAL" in errors[0], err
+        model.set_operate_switch("REMOTE")
+        assert main(["acquire", "source", "off", *port]) == 0 and not model.xray_on
+
+
 # -- STS answered ERROR (B's pre-heating word, A's refusal) ----------------------------------------
 def test_emulator_can_answer_sts_with_error(dialect):
     """L8121.md lists ERROR among B's STS words (pre-heating); the emulator never used it. The
