@@ -21,6 +21,7 @@ from radiokit.measure import (
     _RING2,
     _STILL_RISING,
     ROI,
+    _correlation_reach,  # unchanged by the batching: the current one
     _image,
     _rectangle,
     roi_mean_se,
@@ -191,28 +192,6 @@ def _old_roi_mean_se(image, roi: ROI, *, min_side: int = 16) -> float:
     # model, the long lags saw an object's structure (a dome, whose pixels the edge test left
     # out), not the noise
     return max(math.sqrt(s2 * f / n), _one_pixel_se(first, h, w))
-
-
-def _correlation_reach(g1: float, g2: float) -> tuple[int, float]:
-    """The lag (px) at which the noise's correlation has died, from the semivariances at 1 and 2
-    px: for a Gaussian correlation ``rho(k) = a^(k^2)`` their ratio is ``1 / ((1 + a)(1 + a^2))``,
-    and ``rho < 0.02`` from ``k = 4 tau`` (``a = exp(-1 / (4 tau^2))``). Read from the first two
-    lags only, where a structure's slope or curvature adds least: the longer lags keep rising over
-    a dome, and would read it as correlation."""
-    if not (g2 > 0) or g1 >= g2:
-        return 2, 0.0
-    target = g2 / max(g1, 1e-300)
-    lo, hi = 0.0, 1.0
-    for _ in range(40):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if (1 + mid) * (1 + mid * mid) < target else (lo, mid)
-    a = (lo + hi) / 2
-    if a <= 0:
-        return 2, a
-    if a >= 1:
-        return _MAX_LAG, a
-    tau = math.sqrt(-1 / (4 * math.log(a)))
-    return int(min(_MAX_LAG, max(2, math.ceil(4 * tau) + 1))), a
 
 
 # ---- end of frozen copy ------------------------------------------------------------------------

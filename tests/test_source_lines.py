@@ -84,23 +84,21 @@ def _unconfirmed(state: str) -> str:
 ON = ("--kv", "60", "--ua", "250")
 
 
-def test_a_trip_in_the_ramp_ends_on_the_confirmed_switch_off_and_the_error_code(dialect, fast, capsys):
+@pytest.mark.parametrize(
+    "fault, cause, state, code",
+    [
+        ("open_interlock", "interlock open", "STANDBY", ErrorCode.INTERLOCK),
+        ("overload", "overload", "OVERLOAD", ErrorCode.OVERLOAD),
+    ],
+)
+def test_a_trip_in_the_ramp_ends_on_the_state_sts_confirmed_and_the_error_code(
+    dialect, fast, capsys, fault, cause, state, code
+):
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
-    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.open_interlock), *ON)
-    assert code == 1 and not model.xray_on, err
+    code_, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", getattr(m, fault)), *ON)
+    assert code_ == 1 and not model.xray_on, err
     assert err[-1] == (
-        f"error: {port}: interlock open; X-rays switched off, confirmed by STS: STANDBY; "
-        f"controller error code {int(ErrorCode.INTERLOCK)}"
-    )
-
-
-def test_an_overload_in_the_ramp_ends_on_the_state_sts_confirmed(dialect, fast, capsys):
-    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
-    code, err, port = _source(model, "on", capsys, lambda m: m.inject_after("XON", m.overload), *ON)
-    assert code == 1 and not model.xray_on, err
-    assert err[-1] == (
-        f"error: {port}: overload; X-rays switched off, confirmed by STS: OVERLOAD; "
-        f"controller error code {int(ErrorCode.OVERLOAD)}"
+        f"error: {port}: {cause}; X-rays switched off, confirmed by STS: {state}; controller error code {int(code)}"
     )
 
 
