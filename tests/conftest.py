@@ -32,6 +32,25 @@ needs_itex = pytest.mark.skipif(
 )
 
 
+def pytest_configure(config):
+    """One thread a library in each of the suite's six xdist workers on CI's two cores: radiokit's
+    pool, OpenBLAS and OpenCV each ran two, which only contended for the same cores (OpenBLAS's
+    threads spin while they wait), and the suite took ~9 % more CPU (benchmarks/README.md, "The
+    suite's time, session 45"). In the environment for the commands the tests start and for the
+    libraries not yet loaded, and through threadpoolctl for those loaded (numpy's, scipy's). Here and
+    not at import: a Dask worker that imports a test module (to run one of its functions) imports
+    this file too, and must keep its own environment. The tests of the threaded paths set their own
+    (test_correct, test_register, test_pipeline's Dask workers)."""
+    import cv2
+    import scipy.linalg  # noqa: F401  (loads scipy's own OpenBLAS, so that the limit below reaches it)
+    from threadpoolctl import threadpool_limits
+
+    for name in ("RADIOKIT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(name, "1")
+    threadpool_limits(limits=1)
+    cv2.setNumThreads(1)
+
+
 def pytest_report_header(config):
     found = "found" if ITEX_DIR.is_dir() else "MISSING: tests that need them skip"
     return f"shared vendor files: {ITEX_DIR} ({found})"
@@ -100,6 +119,36 @@ def _write_synthetic(path, scale, shape, n_per_step, noise):
 # only read is built once by a module-scoped fixture: read_only() marks it so that a test writing
 # into it fails (where the suite does not run as root) instead of handing its neighbours another
 # input; a test that changes its input works on writable_copy() of it in its own tmp_path.
+
+
+def built_once(tmp_path_factory, name, build):
+    """``build(folder)``'s value, built once in the whole run rather than once in each xdist worker
+    that takes one of its users: worksteal splits a module between workers, and test_pipeline's
+    simulated experiment was simulated in four of them and processed in three (about 50 of the
+    suite's ~1000 CPU s, session 45). The first worker to ask builds it in a folder of the run's
+    shared temporary folder, under a lock; the others wait on the lock and read the pickled value.
+    What ``build`` writes in ``folder`` is every user's: they only read it. A build that fails
+    leaves nothing behind, and the next worker to ask tries again (and fails as loudly)."""
+    import fcntl
+    import pickle
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # pytest-of-USER/pytest-N: the run's, above each worker's popen-gwN
+    done = base / f"built-once-{name}.pickle"
+    with open(base / f"built-once-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, also if this worker dies
+        if done.exists():
+            return pickle.loads(done.read_bytes())
+        folder = base / f"built-once-{name}"
+        shutil.rmtree(folder, ignore_errors=True)  # an attempt that failed
+        folder.mkdir()
+        value = build(folder)
+        part = done.with_suffix(".part")
+        part.write_bytes(pickle.dumps(value))
+        part.replace(done)
+        return value
 
 
 def read_only(path):

@@ -27,17 +27,22 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 
 import numpy as np
 import pytest
+from conftest import built_once, read_only, writable_copy
 
 MU_B, MU_I = 0.05, 0.10  # per mm
 
 
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory):
+    # built once for the run (built_once): worksteal hands this module's tests to several workers
+    return built_once(tmp_path_factory, "pipeline-experiment", _simulate_experiment)
+
+
+def _simulate_experiment(folder):
     from sim.lab import simulate_experiment
     from sim.scene import Body, Inclusion, Material, block_scene
 
@@ -56,19 +61,24 @@ def experiment(tmp_path_factory):
         )
     ]
     scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm = 1.5, 4.0
-    path = tmp_path_factory.mktemp("pipeline") / "exp.h5"
+    path = folder / "exp.h5"
     simulate_experiment(scene, path, n_darks=6, n_flats=6, frames_per_step=2, progress=False)
-    return path
+    return read_only(path)
 
 
 @pytest.fixture(scope="module")
-def processed(experiment):
+def processed(experiment, tmp_path_factory):
     from radiokit.pipeline import Config, process
 
-    out = experiment.parent / "results"
-    # the default crop (30 mm around the inclusion; the whole frame is registered either way, so
-    # every number is the same as without it): the outputs and the report's images 150 px, not 560
-    return process(experiment, Config(progress=False), out_dir=out), out
+    def run(folder):
+        out = folder / "results"
+        # the default crop (30 mm around the inclusion; the whole frame is registered either way, so
+        # every number is the same as without it): the outputs and the report's images 150 px, not 560
+        res = process(experiment, Config(progress=False), out_dir=out)
+        read_only(out)
+        return res, out
+
+    return built_once(tmp_path_factory, "pipeline-processed", run)
 
 
 def test_improvement_and_change_ratio_follow_the_physics(processed):
@@ -168,8 +178,8 @@ def test_results_files_and_report(processed):
     assert f"{r['improvement_factor']['1']:.{places}f} \u00b1 " in html
 
 
-# The tests on the module's simulated experiment stay together: xdist hands out tests, and a
-# user of `experiment` far down the file, taken by another worker, simulated it again there (20-30 s).
+# The tests on the module's simulated experiment stay together (their fixtures are built once for
+# the run, built_once, however xdist splits them; together they at least run while it is built).
 def test_the_main_pair_is_cross_checked(processed):
     res, _ = processed
     q = res.results["registration"][res.results["main_pair"]]
@@ -204,7 +214,6 @@ def test_a_control_without_a_simulation_record_takes_the_experiments_view_for_it
     through the plates, 1.214 / 1.427, beside an experiment seen from the side, where no bound
     holds. The control is imaged as the experiment, so it takes the experiment's view; a file of
     no simulation record takes ``Config(view=...)``, else the plates."""
-    import shutil
 
     import h5py
 
@@ -212,8 +221,8 @@ def test_a_control_without_a_simulation_record_takes_the_experiments_view_for_it
     from radiokit.pipeline import Config, process
 
     side, plain = tmp_path / "side.h5", tmp_path / "plain.h5"
-    shutil.copy(experiment, side)
-    shutil.copy(experiment, plain)
+    writable_copy(experiment, side)
+    writable_copy(experiment, plain)
     with h5py.File(side, "r+") as h5:  # the same scene seen from the side: only the stored scene's beam changes
         scene = h5[SIMULATION].attrs["scene"]
         assert scene.count('direction = "y"') == 1
@@ -421,7 +430,7 @@ def _worker_state(dask_worker=None):
     }
 
 
-def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
+def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path, monkeypatch):
     """A local cluster's workers start with their share in their environment; the workers of a
     scheduler reached by address (here a second local cluster, which Dask runs exactly as
     `dask scheduler` + `dask worker`) are sized from the scheduler's view when a run starts."""
@@ -437,7 +446,10 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
     path = tmp_path / "a.h5"
     _synthetic(path)
     cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
-    # workers as a user starts them by hand: two threads each, nothing in their environment
+    # workers as a user starts them by hand: two threads each, nothing in their environment (the
+    # suite's one thread a library, conftest.py, taken out: else they would start held already)
+    for name in ("RADIOKIT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.delenv(name, raising=False)
     with (
         LocalCluster(n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None) as cluster,
         Client(cluster) as client,
@@ -447,8 +459,7 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path):
         assert "error" not in res[0]
         after = client.run(_worker_state)
     expect = max(1, cores() // 4)  # two workers of two Dask threads on one host
-    if "RADIOKIT_THREADS" not in os.environ:  # the workers started with the library's default
-        assert all(s["radiokit"] == min(cores(), 8) for s in before.values())
+    assert all(s["radiokit"] == min(cores(), 8) for s in before.values())  # the library's default
     assert all(s["profiling"] for s in before.values())  # Dask's default, until a run starts
     for state in after.values():
         assert state["radiokit"] == state["pool"] == state["cv2"] == expect

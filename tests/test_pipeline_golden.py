@@ -42,6 +42,7 @@ import json
 import math
 
 import pytest
+from conftest import built_once
 
 from radiokit._json import strict
 
@@ -167,10 +168,14 @@ def golden_scene():
 
 @pytest.fixture(scope="module")
 def golden(tmp_path_factory):
+    # built once for the run (built_once): worksteal may hand this module's tests to several workers
+    return built_once(tmp_path_factory, "golden", _golden_run)
+
+
+def _golden_run(d):
     from radiokit.cli import main
     from sim.lab import simulate_experiment
 
-    d = tmp_path_factory.mktemp("golden")
     path, out = d / "golden.h5", d / "results"
     simulate_experiment(golden_scene(), path, n_darks=3, n_flats=3, frames_per_step=1, seed=0, progress=False)
     argv = [

@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+from conftest import built_once
 from scipy import ndimage
 
 from radiokit.register import Registration, jacobian_determinant, register, warp
@@ -1564,7 +1565,17 @@ def test_interior_thinning_is_the_straightforward_computation():
 
 
 @pytest.fixture(scope="module")
-def weak_runs():
+def weak_runs(tmp_path_factory):
+    # built once for the run (built_once): worksteal may hand its four users to several workers
+    return built_once(tmp_path_factory, "weak-runs", lambda _folder: _weak_runs())
+
+
+def _record_level(runs, factor, res):
+    """A callback keeping each level's (factor, iterations); picklable (its run is, built_once)."""
+    runs.append((factor, int(res.nit)))
+
+
+def _weak_runs():
     """The 384 px pair with texture = noise and a +-10 % thinning, registered by ``weak`` (grid_jitter
     off) three ways: as it is (``refit``, through ``register``), without the refit (``plain``) and
     with one refit round fewer (``once``, ``refit_again=0``). Four tests assert different things on
@@ -1587,7 +1598,7 @@ def weak_runs():
             outer.append(out[1])
         return out
 
-    callback = lambda factor, res: runs.append((factor, int(res.nit)))  # the refit passes' last: one level each
+    callback = functools.partial(_record_level, runs)  # the refit passes' last: one level each
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(B, "_bspline_register", recorded)
         refit = register(fixed, moving, "rc", preset="weak", grid_jitter=False, callback=callback)
