@@ -394,6 +394,15 @@ def load_steps(path, progress: bool = False) -> Steps:
     return steps
 
 
+def _too_few_steps(numbers: list, unnumbered: int) -> str:
+    """What a file of fewer than two numbered compression steps holds (it said "found steps []" of
+    projections written without a step number, as if there were none)."""
+    found = f"found step {numbers[0]} only" if numbers else "found none"
+    if unnumbered:
+        found += f"; {unnumbered} projection(s) carry no step number (a negative step: not written)"
+    return f"needs projections of at least two compression steps; {found}"
+
+
 def _load_steps(path, progress: bool) -> Steps:
     """:func:`load_steps` without its NaN warning: :func:`process` refuses such pixels inside a
     ROI (:func:`_check_unknown_in_rois`) and warns of them only once they pass."""
@@ -413,7 +422,7 @@ def _load_steps(path, progress: bool) -> Steps:
         ratios_all = np.asarray(meta.get("ratio", np.full(len(keys), np.nan)), float)
         numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
         if len(numbers) < 2:
-            raise FormatError(path, f"needs projections of at least two compression steps; found steps {numbers}")
+            raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
         numbers = _compression_order(numbers, keys, steps, ratios_all, gaps)
         images, ratios = [], []

@@ -697,6 +697,24 @@ def test_process_names_a_file_that_is_not_an_experiment_and_a_control_of_another
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.parametrize(
+    "steps, words",
+    [
+        ((-1, -1, -1), "found none; 3 projection(s) carry no step number"),
+        ((2, 2, -1), "found step 2 only; 1 projection"),
+    ],
+)
+def test_process_says_what_steps_a_file_of_fewer_than_two_holds(steps, words, tmp_path):
+    # projections written without a step number (-1) were reported as "found steps []"
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=(16, 16)) as w:
+        w.append(np.full((16, 16), 100, np.uint16), image_key=ImageKey.DARK)
+        w.append(np.full((16, 16), 3000, np.uint16), image_key=ImageKey.FLAT)
+        for step in steps:
+            w.append(np.full((16, 16), 2000, np.uint16), image_key=ImageKey.PROJECTION, step=step)
+    one_line_error(run_cli("process", path, "-q", "-o", tmp_path / "res"), "exp.h5", "two compression steps", words)
+
+
 def test_process_on_a_folder_says_it_is_a_folder(tmp_path):
     # its default results folder is the folder itself: "is the input exp: never overwritten" before
     (tmp_path / "exp").mkdir()
