@@ -434,6 +434,7 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path, monkeypatch
     """A local cluster's workers start with their share in their environment; the workers of a
     scheduler reached by address (here a second local cluster, which Dask runs exactly as
     `dask scheduler` + `dask worker`) are sized from the scheduler's view when a run starts."""
+    import dask
     from dask.distributed import Client, LocalCluster
 
     from radiokit._threads import cores
@@ -450,7 +451,11 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path, monkeypatch
     # suite's one thread a library, conftest.py, taken out: else they would start held already)
     for name in ("RADIOKIT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         monkeypatch.delenv(name, raising=False)
+    # and without the one BLAS thread Dask's nanny gives its workers by default (its
+    # pre-spawn-environ), which a deployment may change: else the check of BLAS after the run
+    # could not fail
     with (
+        dask.config.set({"distributed.nanny.pre-spawn-environ": {}}),
         LocalCluster(n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None) as cluster,
         Client(cluster) as client,
     ):
@@ -460,6 +465,8 @@ def test_dask_workers_are_held_to_their_share_of_the_cores(tmp_path, monkeypatch
         after = client.run(_worker_state)
     expect = max(1, cores() // 4)  # two workers of two Dask threads on one host
     assert all(s["radiokit"] == min(cores(), 8) for s in before.values())  # the library's default
+    if cores() > 1:
+        assert all(s["blas"] != [1] for s in before.values())  # OpenBLAS's default: a thread a core
     assert all(s["profiling"] for s in before.values())  # Dask's default, until a run starts
     for state in after.values():
         assert state["radiokit"] == state["pool"] == state["cv2"] == expect
