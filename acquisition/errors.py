@@ -24,6 +24,12 @@ class NoReply(DeviceError):
     that answers."""
 
 
+class WriteTimedOut(DeviceError):
+    """A command the device took no data of within the write time-out (its output held: CTS low,
+    an XOFF): not sent whole, so never carried out. Typed, so that a switch-off knows it sent no
+    ``XOF`` without reading the words of the message."""
+
+
 class PortUnavailable(DeviceError):
     """The port could not be opened at all (a mistyped name, a cable not plugged in): no byte
     was sent, so nothing was switched on or off through it."""

@@ -91,7 +91,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
-from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault, WriteTimedOut
 from acquisition.transport import SerialTransport
 from radiokit.checks import is_integer, is_number
 
@@ -1829,7 +1829,7 @@ class L8121:
             sent.append(link.baudrate)
         except DeviceError as exc:
             said.append(str(exc))
-            if "write timed out" not in str(exc):
+            if not isinstance(exc, WriteTimedOut):  # anything else: the XOF may have arrived
                 sent.append(link.baudrate)
             if not ask and isinstance(exc, NoReply):
                 return None

@@ -33,7 +33,7 @@ import time
 import serial
 import serial.rfc2217
 
-from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable
+from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable, WriteTimedOut
 from radiokit.interrupts import STOP_SIGNALS, held
 
 __all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
@@ -722,7 +722,7 @@ class SerialTransport:
                 except _LINK_ERRORS as exc:
                     # Write time-outs are a device that does not take data, not a lost link.
                     if isinstance(exc, serial.SerialTimeoutException):
-                        raise DeviceError(
+                        raise WriteTimedOut(
                             f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
                         ) from exc
                     attempt += 1

@@ -29,7 +29,7 @@ import pytest
 import serial
 
 from acquisition.emulators.l8121 import DEFAULT_BAUD, L8121Model, PtyServer, SocketServer
-from acquisition.errors import DeviceError, SourceFault
+from acquisition.errors import DeviceError, SourceFault, WriteTimedOut
 from acquisition.l8121 import (
     DIALECT_A,
     DIALECT_B,
@@ -444,7 +444,8 @@ def test_a_command_the_port_does_not_take_is_a_write_time_out_not_sent():
     try:
         with SerialTransport(os.ttyname(slave), timeout_s=0.3, min_interval_s=0, write_timeout_s=0.2) as lnk:
             termios.tcflow(lnk._serial.fd, termios.TCOOFF)
-            with pytest.raises(DeviceError, match="XOF: write timed out after 0.2 s"):
+            # typed: a switch-off reads from the type, not the words, that no XOF went
+            with pytest.raises(WriteTimedOut, match="XOF: write timed out after 0.2 s"):
                 lnk.query("XOF")
             termios.tcflow(lnk._serial.fd, termios.TCOON)
             time.sleep(0.1)
