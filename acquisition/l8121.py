@@ -2901,7 +2901,7 @@ class L8121:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
             seen_on |= state == SourceState.XRAY_ON
-            if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, seconds):
+            if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, t0):
                 time.sleep(c.poll_s)
                 continue
             if state != SourceState.XRAY_ON:
@@ -2929,15 +2929,17 @@ class L8121:
                 raise self._switched_off(DeviceError, why, off, failed) from failed
             time.sleep(c.poll_s)
 
-    def _coming_on(self, state: SourceState, kv: float, ua: float, seconds: float) -> bool:
-        """Whether a reading after XON, before the first X-rays-on one, is the state still following
-        the echo: standby within ``xon_start_s`` (L8121.md ties no state to XON's echo; the values
-        "ramp ... over a few seconds after XON"). The interlock is watched meanwhile; standby past
-        ``xon_start_s`` is a beam that did not come on, switched off all the same."""
+    def _coming_on(self, state: SourceState, kv: float, ua: float, t0: float) -> bool:
+        """Whether a reading after XON (answered at ``t0``), before the first X-rays-on one, is the
+        state still following the echo: standby within ``xon_start_s`` (L8121.md ties no state to
+        XON's echo; the values "ramp ... over a few seconds after XON"). The interlock is watched
+        meanwhile; standby past ``xon_start_s`` is a beam that did not come on, switched off all the
+        same."""
         if state != SourceState.STANDBY or getattr(self._transport, "watchdog_off", None):
             return False  # (a standby the guardian's watchdog made is its switch-off: _fault_reason names it)
         if not self.interlock_closed():
             self._trip(self._fault_reason(state, kv, ua, ramping=True, interlock_closed=False) or "interlock open")
+        seconds = time.monotonic() - t0  # after SIN's exchange: the line says the time it waited in all
         if seconds > self.config.xon_start_s:
             self._trip(f"X-rays did not come on: state STANDBY {seconds:.1f} s after XON was answered")
         return True
