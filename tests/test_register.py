@@ -350,7 +350,12 @@ def test_weak_texture_pair_recovered():
 
 
 @pytest.fixture(scope="module")
-def loud_pair():
+def loud_pair(tmp_path_factory):
+    # built once for the run (built_once): worksteal may hand its three users to several workers
+    return built_once(tmp_path_factory, "loud-pair", lambda _folder: _loud_pair())
+
+
+def _loud_pair():
     """Texture 3x the noise, motion correlated over a tenth of the frame (384 px), with its
     ``weak`` and ``default`` registrations: three tests assert different things on these same
     deterministic runs (the auto test compares auto's field to weak's to the bit), so they run once
@@ -1728,7 +1733,12 @@ def test_weaks_second_pass_runs_the_finest_level_from_the_first_pass(weak_runs):
 
 
 @pytest.fixture(scope="module")
-def stopped_704():
+def stopped_704(tmp_path_factory):
+    # built once for the run (built_once): worksteal may hand its three users to several workers
+    return built_once(tmp_path_factory, "stopped-704", lambda _folder: _stopped_704())
+
+
+def _stopped_704():
     """Texture = noise, a local motion of 3 % of the frame, 704 px, and ``auto``'s plain run on it
     (``default`` with ``ABANDON`` and ``EXTEND``), which stops halfway through the level before
     its finest: three auto tests start from this same deterministic run (1.5 s each at 704 px).
