@@ -337,13 +337,17 @@ def test_process_gives_inputs_with_the_same_name_and_a_file_named_dot_dot_h5_dis
     """Two inputs of one name each get a folder, and ``..h5`` (stem ".") one of its own inside -o,
     not -o itself. One Dask run for both (two tests ran one each: a subprocess and its cluster,
     7-15 s apiece; session 42); the ``..h5`` first, as it was in its own test."""
+    # the folders are named from the inputs' names alone: four small experiments (100 x 100 holds
+    # the ROI and the square), processed without the report and the cross-check (~2 CPU s of ~9)
+    small = (100, 100)
     a, b = tmp_path / "a" / "run.h5", tmp_path / "b" / "run.h5"
     for p, scale in ((a, 1.0), (b, 1.3)):
         p.parent.mkdir()
-        synthetic(p, scale)
-    dots, other = synthetic(tmp_path / "..h5"), synthetic(tmp_path / "exp2.h5", scale=1.2)
+        synthetic(p, scale, shape=small)
+    dots, other = synthetic(tmp_path / "..h5", shape=small), synthetic(tmp_path / "exp2.h5", scale=1.2, shape=small)
     before = {p: sha(p) for p in (a, b)}
-    res = run("process", dots, other, a, b, "-o", tmp_path / "R", "--no-report", "-q", "--workers", "1", *ROI)
+    fast = ["--no-report", "--cross-check", "none", "-q", *ROI]
+    res = run("process", dots, other, a, b, "-o", tmp_path / "R", "--workers", "1", *fast)
     assert res.returncode == 0, res.stderr
     sources = {d.name: json.loads((d / "results.json").read_text())["source"] for d in (tmp_path / "R").iterdir()}
     assert sorted(sources.values()) == sorted([str(dots), str(other), str(a), str(b)]) and "exp2" in sources
