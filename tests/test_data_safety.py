@@ -35,7 +35,7 @@ from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path,
 ROOT = Path(__file__).resolve().parents[1]
 ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
 #: for runs checked on where and how process writes its folder, not on what it measured: no cross-check
-#: (the registration again by another method, ~0.4 of a run's ~1.2 CPU s; session 45)
+#: (the registration again by another method: ~0.2 of a run's ~1.5 CPU s, median of 9; session 45)
 NO_CROSS_CHECK = ["--cross-check", "none"]
 
 
