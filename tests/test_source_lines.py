@@ -381,3 +381,23 @@ def test_a_stop_in_the_hold_switches_off_as_every_source_command_stops(fast, cap
         return
     assert code == 128 + signum and not model.xray_on, err
     assert err[-1] == f"stopped by {sig}; tube off (confirmed by STS: STANDBY)", err
+
+
+def test_a_hold_whose_switch_off_is_not_confirmed_ends_on_the_warning(fast, capsys, monkeypatch):
+    """The hold's own end is an exit path too: a relay stuck on as the time runs out (XOF answered,
+    STS still reads X-rays on) ends on that failure, then the X-rays warning, exit 3 -- never on
+    "tube off"."""
+    import acquisition.cli
+
+    hold = acquisition.cli._hold_beam
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+
+    def held_then_stuck(*args):
+        hold(*args)
+        model.stuck_on()
+
+    monkeypatch.setattr(acquisition.cli, "_hold_beam", held_then_stuck)
+    code, out, err, port = _source_said(model, "on", capsys, None, *HOLD, "--for", "0.2")
+    assert code == 3 and err[-1] == TUBE_WARNING, (out, err)
+    assert err[-2] == f"error: {port}: {_unconfirmed('XRAY_ON')}", err
+    assert not any("tube off" in line for line in out + err), (out, err)
