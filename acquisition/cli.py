@@ -11,6 +11,15 @@ from pathlib import Path
 
 SOURCE_ACTIONS = ("probe", "status", "warm-up", "on", "off")
 
+#: The longest ``source on --for``, s. A bench check (alignment, a dose-rate reading) takes
+#: minutes; an extra zero or minutes typed as seconds must not become hours of beam nobody
+#: watches. Longer exposures are a protocol's (a series records what it did).
+HOLD_MAX_S = 3600.0
+_HOLD_HELP = (
+    f"how long 'on' keeps X-rays on, s (required with 'on'; at most {HOLD_MAX_S:g}): switched off at its end, "
+    "at Ctrl-C, or at a fault"
+)
+
 
 def add_acquire(subparsers):
     p = subparsers.add_parser(
@@ -54,6 +63,7 @@ def add_acquire(subparsers):
         help="tube voltage for 'on' (and 'warm-up': set before it starts), kV (the L8121: 40-150, at most 75 W)",
     )
     s.add_argument("--ua", type=float, help="tube current for 'on' (and 'warm-up'), uA (the L8121: at most 500)")
+    s.add_argument("--for", dest="hold", type=float, metavar="SECONDS", help=_HOLD_HELP)
     s.add_argument("--timeout", type=float, help="warm-up time-out, s (default 1800)")
     s.add_argument(
         "--reply-timeout",
@@ -186,6 +196,7 @@ def _not_for_a_protocol(args) -> str | None:
             ("--baudrate", args.baudrate),
             ("--kv", args.kv),
             ("--ua", args.ua),
+            ("--for", args.hold),
             ("--timeout", args.timeout),
             ("--reply-timeout", args.reply_timeout),
             ("--ready-timeout", args.ready_timeout),
@@ -327,8 +338,8 @@ def _guarded(command, *args) -> int:
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
-        # 0: the command had finished when the stop came (`source on` leaves the tube on by
-        # design, and 128 + N says "stopped, tube off or never reached"; review s32-r3)
+        # 0: the command had finished, tube off confirmed, when the stop came (128 + N says
+        # "stopped, tube off or never reached"; review s32-r3)
         return code if code in (0, 3) else 128 + exc.signum
     return code
 
@@ -511,6 +522,7 @@ def _source_refusal(args) -> str | None:
         for option, value, actions in (
             ("--kv", args.kv, ("on", "warm-up")),
             ("--ua", args.ua, ("on", "warm-up")),
+            ("--for", args.hold, ("on",)),
             ("--timeout", args.timeout, ("warm-up",)),
             ("--reply-timeout", args.reply_timeout, ("status", "warm-up", "on", "off")),
             ("--ready-timeout", args.ready_timeout, ("warm-up", "on", "probe")),
@@ -520,9 +532,12 @@ def _source_refusal(args) -> str | None:
     if unread:
         return (
             f"{', '.join(unread)}: not read by 'source {args.action}' (--kv and --ua are for 'on' and 'warm-up', "
-            "--ready-timeout for those and 'probe', --timeout for 'warm-up', --reply-timeout for all but 'probe'); "
+            "--for for 'on', --ready-timeout for those and 'probe', --timeout for 'warm-up', --reply-timeout for all "
+            "but 'probe'); "
             "nothing was sent"
         )
+    if (hold := _hold_refusal(args)) is not None:
+        return hold
     if args.action == "warm-up" and (args.kv is None) != (args.ua is None):
         return "'warm-up' takes --kv and --ua together (or neither: the lowest allowed); nothing was sent"
 
@@ -545,6 +560,24 @@ def _source_refusal(args) -> str | None:
         return (
             f"--timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
             "seconds; nothing was sent"
+        )
+    return None
+
+
+def _hold_refusal(args) -> str | None:
+    """Why ``on``'s ``--for`` is refused, or None: no open-ended beam from a command line (L8121.md:
+    the tube is never left on while waiting for a person)."""
+    if args.action != "on":
+        return None
+    if args.hold is None:
+        return (
+            "'on' needs --for SECONDS: how long X-rays stay on (switched off at its end, or at Ctrl-C); "
+            "nothing was sent"
+        )
+    if not (math.isfinite(args.hold) and 0 < args.hold <= HOLD_MAX_S):
+        return (
+            f"--for {args.hold:g}: expected a positive number of seconds, at most {HOLD_MAX_S:g} (longer "
+            "exposures are a protocol's); nothing was sent"
         )
     return None
 
@@ -635,7 +668,7 @@ def _probe_found(result, args) -> int:
     off (README: exit codes), and the probe's ``STS`` is what read it: a state that emits (X-rays
     on, B's ``AGING``) is said loudly and switched off as ``source status`` does -- ``source off``
     in the dialect and at the rate found, ``XOF`` confirmed by ``STS`` (exit 0), or not (the
-    warning, exit 3). Only ``source on`` leaves a tube on; the probe sent queries only (no
+    warning, exit 3). No radiokit command leaves a tube on; the probe sent queries only (no
     ``XOF`` within it: it does not know the dialect until it ends). B's ``STS ERROR`` (pre-heating,
     or a refused query) shows nothing of the tube: the warning, exit 3, with nothing sent (the
     notes' pre-heating, after power-on, is no beam to switch off)."""
@@ -665,7 +698,8 @@ def _probe_found(result, args) -> int:
     if state is not None and state.emitting:
         _say(
             f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
-            "(`source off`, confirmed by STS); only `radiokit acquire source on` leaves them on"
+            "(`source off`, confirmed by STS); no radiokit command leaves them on (other software, a crash, a power "
+            "cut or a hand at the controller did)"
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
@@ -746,8 +780,8 @@ def _source_command(args, guard) -> int:
             **{key: value for key, value in times.items() if value is not None},
         )
         try:
-            # the warm-up emits: a guardian holds the port
-            src = _behind_guardian(src) if args.action == "warm-up" else src
+            # the warm-up and the held beam emit: a guardian holds the port (kill -9 gets its XOF)
+            src = _behind_guardian(src) if args.action in ("warm-up", "on") else src
             src.connect()
         except KeyboardInterrupt as exc:  # connect sends queries only, and XOF if it found the tube on
             guardian_gone(src, exc)
@@ -757,7 +791,7 @@ def _source_command(args, guard) -> int:
                 # stopping) by a command that controls the tube -- `off` asked for it, and every
                 # other exit of `on` and `warm-up` leaves the tube off too (`off` alone also when the
                 # interrupted probe found no dialect). README's one rule then: reached and not
-                # confirmed off -- an earlier `source on`'s tube may be on still -- the warning;
+                # confirmed off -- a tube left on (other software, a crash) may be on still -- the warning;
                 # `off` that never reached the controller too (as when the port fails)
                 tried = args.action != "status" and _off_anyway(src, exc, blind=args.action == "off")
                 confirmed = tried or src.tube_confirmed_off
@@ -771,7 +805,7 @@ def _source_command(args, guard) -> int:
             raise
         try:
             code = _source_action(src, args)
-            guard.settle()  # a stop lost meanwhile switches off like any other, before `on` leaves the tube on
+            guard.settle()  # a stop lost meanwhile switches off like any other
         except KeyboardInterrupt as exc:
             # XOF whatever this command had begun (always accepted): the line then states the tube.
             # Not confirmed: off() raises the error that says to switch off at the controller, and
@@ -790,10 +824,7 @@ def _source_command(args, guard) -> int:
             guard.cleanup()  # from here a signal must not cut the switch-off short
             _close_after(src, exc)  # a failed command leaves the tube off, or close() raises that it may not be
             raise
-        if args.action == "on" and code == 0:
-            src.detach()  # bench work: on until `acquire source off`
-        else:
-            src.close()
+        src.close()
         return code
     except (DeviceError, ValueError) as exc:
         _say(f"error: {_cli_terms(str(_one_fault(exc, src)), args.port)}")
@@ -854,17 +885,27 @@ def _interrupted_connect(exc) -> str:
 
 def _behind_guardian(src):
     """``src``'s controller behind a guardian process (:mod:`acquisition.guardian`), as a series'
-    is: the warm-up emits X-rays for minutes, and L8121.md has an interrupted warm-up switched off
+    is: the warm-up emits X-rays for minutes (``on`` for its ``--for``), and L8121.md has an interrupted warm-up switched off
     like an exposure, ``kill -9`` of this process included, which only another process can do (it
     left B's warm-up, which may run on into X-rays on, on for good). The dialect is resolved first
     (``auto`` probes), the guardian opens the port in it; the returned driver is not connected
     yet and knows what the probe read (``take_over``)."""
+    from acquisition.errors import PortUnavailable
     from acquisition.guardian import start_guardian
     from acquisition.l8121 import L8121
     from acquisition.protocols.compression_series import SourceSettings
 
     resolved = src.resolve()
-    link = start_guardian(src.port, resolved, watchdog_s=SourceSettings.watchdog_s, armed=not src.tube_confirmed_off)
+    try:
+        link = start_guardian(
+            src.port, resolved, watchdog_s=SourceSettings.watchdog_s, armed=not src.tube_confirmed_off
+        )
+    except PortUnavailable as exc:
+        if src.probe_result is not None and src.probe_result.found:
+            # the probe reached the controller, then the guardian could not take the port (another
+            # program took it, the adapter dropped out): not "never reached" -- what it read, as a series says
+            raise src.port_lost_after_probe(exc) from exc
+        raise
     guarded = L8121(link, connect=False, config=resolved)
     guarded.take_over(src)
     return guarded
@@ -880,7 +921,7 @@ def _off_anyway(src, interrupt: BaseException | None = None, *, blind: bool = Tr
 def _source_error_code(exc, src, args) -> int:
     """The last line and the exit code of a source command that failed with ``exc`` (its error
     line already printed). One rule, as for a series (README: the exit codes): the port never
-    opened -- "never reached" and 1 (`off`: the warning and 3, a tube an earlier `source on` left on
+    opened -- "never reached" and 1 (`off`: the warning and 3, a tube left on before it (other software, a crash)
     is on still); the port opened and the controller did not confirm the tube off (no reply, a
     refused or garbled STS, a switch-off not confirmed, X-rays found on and left on) -- the
     warning and 3, whoever switched the tube on; else 1."""
@@ -950,7 +991,7 @@ def _off_line(off, after: str = "") -> str:
 def _after_failed_on(src, args) -> str:
     """What a refused or failed ``on`` (or ``warm-up``) left the tube in, for the end of its error
     line. on() switches off (confirmed) after any failure past its XON; a tube already on when it
-    began (an earlier `source on`: on() refuses to change a beam it did not start, warm_up() to
+    began (left on by other software, a crash: on() refuses to change a beam it did not start, warm_up() to
     start a warm-up) is switched off here,
     not left to close(): the project's rule is the tube off on every exit but a successful `on`'s,
     and the operator asked for other values, not for the old beam to go on. The line says so; a
@@ -960,7 +1001,7 @@ def _after_failed_on(src, args) -> str:
     if src.may_be_on:
         state = src.off()
         return (
-            f"; they were (or may have been) on from before this command (an earlier `source on`) and are now "
+            f"; they were (or may have been) on from before this command (other software, a crash) and are now "
             f"off, confirmed "
             f"by STS: {state.name}; run the same command again to "
             + (f"switch them on at {args.kv:g} kV {args.ua:g} uA" if args.action == "on" else "warm up")
@@ -1014,6 +1055,39 @@ def _cli_terms(text: str, port: str | None = None) -> str:
     return text
 
 
+def _hold_beam(src, args, reading) -> None:
+    """``on``'s beam held for ``--for`` s, polled as a series' beam monitor polls an exposure
+    (:meth:`~acquisition.l8121.L8121.check` every ``[source] poll_s``, which also keeps the
+    guardian's watchdog fed): an open interlock, an overload or a dropped beam switches off and
+    raises. One line says when it ends; a bar counts down on a terminal only (as ``warm-up``)."""
+    import time
+
+    from acquisition.protocols.compression_series import SourceSettings
+
+    start, end = time.time(), time.monotonic() + args.hold
+    print(
+        f"{args.port}: X-rays ON at {reading['set_voltage_kv']} kV {reading['set_current_ua']} uA (measured "
+        f"{reading['voltage_kv']:g} kV {reading['current_ua']:g} uA) until "
+        f"{time.strftime('%H:%M:%S', time.localtime(start + args.hold))} ({args.hold:g} s); Ctrl-C switches them off",
+        flush=True,
+    )
+    bar = None
+    if not args.quiet and sys.stderr.isatty():
+        from radiokit.progress import tqdm
+
+        bar = tqdm(total=round(args.hold), desc=f"X-rays on ({args.port})", unit="s", leave=False)
+    try:
+        while (left := end - time.monotonic()) > 0:
+            time.sleep(min(SourceSettings.poll_s, left))
+            src.check()
+            if bar is not None:
+                bar.n = min(round(args.hold - max(end - time.monotonic(), 0.0)), bar.total)
+                bar.refresh()
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def _source_status(src, args) -> int | None:
     """``source status``: the state, measured beam, interlock (and B's operate switch) printed;
     a tube found or read emitting switched off and confirmed. An exit code when it decides one
@@ -1043,7 +1117,7 @@ def _source_status(src, args) -> int | None:
         # off after the line above said XRAY_ON, and the operator's last line was no longer true
         print(
             f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
-            "only `radiokit acquire source on` leaves them on"
+            "no radiokit command leaves them on (other software, a crash, a power cut or a hand at the controller did)"
         )
     elif state.confirms_off and src.may_be_on:
         # found emitting at connect, read off now (a trip, a hand at the panel): that reading
@@ -1055,7 +1129,7 @@ def _source_status(src, args) -> int | None:
         )
     elif not state.confirms_off and (kv > 0 or ua > 0):
         # B's STS ERROR (pre-heating by L8121.md, and what a refusal looks like) says nothing
-        # of the tube, and a beam is measured (an earlier `source on`): switch off and confirm;
+        # of the tube, and a beam is measured (left on by other software, a crash): switch off and confirm;
         # not confirmed, off() raises and the command ends on the warning (exit 3). With
         # nothing measured it is the pre-heating the notes name, and only reported
         print(
@@ -1088,27 +1162,24 @@ def _source_action(src, args) -> int:
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
         print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
-    elif args.action == "on":  # --kv and --ua: given and within the ratings (checked in _source)
-        # said before XON: this command leaves the beam on, and killed in the ramp (kill -9, no
-        # handler runs) it has no later line to say so
+    elif args.action == "on":  # --kv, --ua and --for: given and within bounds (checked in _source)
+        # said before XON: killed in the ramp (kill -9, no handler runs) this command has no later
+        # line; the guardian's XOF is what ends the beam then
         src.before_xon = lambda kv, ua: print(
-            f"{args.port}: switching X-rays ON at {kv} kV {ua} uA: they stay on when this command ends; "
-            f"`radiokit acquire source off --port {args.port}` switches them off",
+            f"{args.port}: switching X-rays ON at {kv} kV {ua} uA for {args.hold:g} s: switched off at its end, "
+            "or at Ctrl-C",
             flush=True,
         )
         try:
             r = src.on(*args.whole)  # (checked and rounded before the port was opened)
+            _hold_beam(src, args, r)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
-        print(
-            f"{args.port}: X-rays ON at {r['set_voltage_kv']} kV {r['set_current_ua']} uA (measured "
-            f"{r['voltage_kv']:g} kV {r['current_ua']:g} uA). They stay on: `radiokit acquire source off "
-            f"--port {args.port}` switches them off."
-        )
+        print(f"{args.port}: {args.hold:g} s over: tube off (confirmed by STS: {src.off().name})")
     else:
         src.off()
         print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
-    if args.action != "on" and not src.tube_confirmed_off:  # the exit rule (README: exit codes)
+    if not src.tube_confirmed_off:  # the exit rule (README: exit codes)
         _tube_warning(src)
         return 3
     return 0

@@ -65,7 +65,7 @@ def guardian_gone(src, exc) -> bool:
     or it never did (killed before READY) while the tube was not known off. The port is free
     again, and this process switches off through it, confirmed by STS, or ends on the warning
     (:func:`off_anyway`, the exit rule) -- also when neither the guardian nor a probe had opened
-    it (the dialect given): a tube an earlier `source on` left on is on still, and the command
+    it (the dialect given): a tube left on before (other software, a crash) is on still, and the command
     that was to warm up (or switch on) leaves it off. Counted as reached for that: the guardian
     may have opened the port before it died, so "never reached" would not be known true, and a
     switch-off that then fails ends on the warning (review s35r1: the tube was left on, and the
@@ -500,8 +500,8 @@ def _end_start(link, config, exc: BaseException, startup_timeout_s: float, *, ar
         # it held the port (READY) or hung and was killed, perhaps in its switch-off, without a word
         # on the tube: the port is free again, and the caller switches off through it, or warns
         # (review s33-r2; recording that as a failed switch-off stopped the caller's, s33-r4)
-        # (killed or crashed before READY -- the OOM killer -- it sent nothing, but a tube an
-        # earlier `source on` left on is still on: the caller's to switch off, review s34-r2)
+        # (killed or crashed before READY -- the OOM killer -- it sent nothing, but a tube left
+        # on before (other software, a crash) is still on: the caller's to switch off, review s34-r2)
         exc.guardian_gone, exc.guardian_sent = link.may_have_sent or armed, link.may_have_sent
         _advise(
             exc,

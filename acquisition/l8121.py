@@ -1516,8 +1516,8 @@ class L8121:
         #: earlier command) and waited for it: nothing set, nothing sent that emits.
         self.warmup_joined = False
         #: ``before_xon(kv, ua)``, called by :meth:`on` with the values set and read back, right
-        #: before its ``XON``: a caller that leaves the beam on (``source on``) tells the operator
-        #: there, since a ``kill -9`` in the ramp that follows leaves it on with no word after.
+        #: before its ``XON``: a caller tells the operator there what the beam will do (``source on``:
+        #: for how long), since a ``kill -9`` in the ramp that follows leaves it no word after.
         self.before_xon: Callable[[int, int], None] | None = None
         #: The focus last asked for (:attr:`focus`), set and read back again before every ``XON``
         #: of :meth:`on`: a controller reset between beam periods (a power cycle) puts the unit's
@@ -1608,7 +1608,7 @@ class L8121:
                     logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
                 else:
                     logger.warning(
-                        "%s: X-rays are ON at connect (an earlier `source on`, or switched on at the controller); "
+                        "%s: X-rays are ON at connect (left on by other software or a crash, or switched on at the controller); "
                         "radiokit switches them off before it lets the port go and says whether the controller "
                         "confirmed it: if no confirmation follows, switch off at the controller",
                         self.port,
@@ -1686,8 +1686,8 @@ class L8121:
             self._reidentify = transport.on_reconnect  # (the guardian's): its reconnects are counted
 
     def _off_after_probe(self, exc: KeyboardInterrupt) -> None:
-        """An interrupt cut the probe short after ``STS`` read X-rays on (left on by an earlier
-        ``source on``, or by hand): the dialect is known, so switch off on the probe's link and
+        """An interrupt cut the probe short after ``STS`` read X-rays on (left on by other
+        software or a crash, or by hand): the dialect is known, so switch off on the probe's link and
         confirm (``L8121.md``: off "on every exit path", Ctrl-C included) before the interrupt goes
         on. The exception then carries ``tube_state`` (the confirmed off state) or ``off_failed``;
         the caller's signal guard defers further signals meanwhile (it stays stopping)."""
@@ -1709,7 +1709,7 @@ class L8121:
         """A session that controls the tube (``control``) whose connect failed after the port
         opened -- the identity query unanswered, refused or naming another model, B's operate switch
         not on REMOTE, STS refused or garbled: ``XOF`` all the same on the link there is, then
-        ``STS`` (:meth:`off`). Nobody has read the tube off, and an earlier ``source on`` may have
+        ``STS`` (:meth:`off`). Nobody has read the tube off, and other software or a crash may have
         left it on; the connect's refusal must not leave it so. ``XOF`` cannot emit in either
         dialect (``L8121.md``: A's is "always accepted"; B names no exception to "remote control
         needs REMOTE", so a B unit off REMOTE may refuse it -- a refused command changes nothing,
@@ -2026,9 +2026,9 @@ class L8121:
         return getattr(self._transport, "watchdog_off", None)
 
     def detach(self) -> None:
-        """Close the link and leave the source as it is -- X-rays on included. Only for bench work
-        from the command line (``radiokit acquire source on``), where the operator switches off
-        with ``radiokit acquire source off``; scripts use :meth:`close`."""
+        """Close the link and leave the source as it is -- X-rays on included. Only after a
+        switch-off that could not be confirmed and was said loudly (a second round of attempts
+        would only delay the operator's warning); scripts use :meth:`close`."""
         if self._transport is not None:
             self._transport.close()
             self._transport = None

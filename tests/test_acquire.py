@@ -914,20 +914,23 @@ def test_cli_source_commands_on_the_emulator(capsys):
         out = capsys.readouterr().out
         assert "dialect A at 9600 baud" in out and "WARMUP_NEEDED" in out
         port = ("--port", server.url, "--dialect", "A")
-        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 1
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.2") == 1
         err = capsys.readouterr().err.splitlines()
         assert "warm-up" in err[-1] and not model.xray_on
         # found by a new user: the refusal's line ended on "(state WARMUP_NEEDED)", not on whether
         # X-rays are off, which README's exit code 1 promises is confirmed
         assert err[-1].endswith("X-rays off, confirmed by STS: WARMUP_NEEDED (nothing that emits sent since)"), err
         assert _cli("acquire", "source", "warm-up", *port, "-q") == 0
-        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250") == 0
-        assert model.xray_on  # bench work: on until told otherwise
-        kv, ua = model.measured()
+        capsys.readouterr()
+        assert _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.2") == 0
+        assert not model.xray_on and model.commands.count("XON") == 1 and model.commands[-2:] == ["XOF", "STS"]
+        out = capsys.readouterr().out
+        kv, ua = map(float, re.search(r"\(measured (\S+) kV (\S+) uA\)", out).groups())
         assert abs(kv - 60) <= 1.0 and abs(ua - 250) <= 5.0  # the driver's tolerances
+        assert out.splitlines()[-1].endswith("tube off (confirmed by STS: STANDBY)"), out
         assert _cli("acquire", "source", "off", *port) == 0
         assert not model.xray_on
-        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250") == 2
+        assert _cli("acquire", "source", "on", *port, "--kv", "200", "--ua", "250", "--for", "0.2") == 2
         assert "kV" in capsys.readouterr().err and not model.xray_on
 
 
@@ -946,7 +949,7 @@ def _source_on_without_a_sar_reply(model) -> int:
         with PtyServer(model) as server:
             model.inject_after("XON", lambda: model.hold_once("SAR"))
             port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
-            return _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+            return _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.2")
     finally:
         root.removeHandler(console)
 
@@ -996,7 +999,7 @@ def test_cli_source_on_says_why_it_switched_off_when_the_switch_off_is_not_confi
     with PtyServer(model) as server:
         model.inject_after("XON", lambda: model.silence(True, execute=True))
         port = ("--port", server.url, "--dialect", "A", "--reply-timeout", "0.3")
-        code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
+        code = _cli("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.2")
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     errors = [ln for ln in err if ln.startswith("error:")]
     assert code == 3 and err[-1] == TUBE_WARNING and len(errors) == 1, err
@@ -1045,11 +1048,16 @@ def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, sc
         port = ("--port", server.url, "--dialect", "A")
         for given, pattern in (
             (
-                ("--kv", "200", "--ua", "250"),
+                ("--kv", "200", "--ua", "250", "--for", "1"),
                 r"^error: --kv 200 --ua 250: voltage_kv = 200 kV is outside .*40\.\.150 kV",
             ),
-            (("--kv", "60", "--ua", "nan"), r"current_ua must be finite"),
-            (("--kv", "60"), r"^error: 'on' needs --kv and --ua$"),
+            (("--kv", "60", "--ua", "nan", "--for", "1"), r"current_ua must be finite"),
+            (("--kv", "60", "--for", "1"), r"^error: 'on' needs --kv and --ua$"),
+            # no open-ended beam from a command line: how long, or nothing is sent
+            (("--kv", "60", "--ua", "250"), r"^error: 'on' needs --for SECONDS: .*; nothing was sent$"),
+            (("--kv", "60", "--ua", "250", "--for", "0"), r"^error: --for 0: expected a positive number"),
+            (("--kv", "60", "--ua", "250", "--for", "inf"), r"^error: --for inf: expected a positive number"),
+            (("--kv", "60", "--ua", "250", "--for", "3601"), r"^error: --for 3601: .*at most 3600"),
         ):
             code = _cli("acquire", "source", "on", *port, *given)
             err = capsys.readouterr().err.strip().splitlines()
@@ -1100,6 +1108,7 @@ def test_cli_source_command_options_with_a_protocol_are_refused_not_ignored(tmp_
         (given, "--port, --baudrate, --kv, --ua, --timeout"),
         (["--kv", "40"], "--kv"),
         (["--timeout", "1800"], "--timeout"),  # its default spelled out is still the wrong command's
+        (["--for", "30"], "--for"),  # a series' beam time is its frames'
     ):
         code = _cli("acquire", str(path), "--sim", *flags, *words)
         err = capsys.readouterr().err.strip().splitlines()

@@ -1951,8 +1951,8 @@ def test_a_garbled_reply_after_a_time_out_is_reported_and_the_switch_off_tried_a
 
 @pytest.mark.parametrize("action", ["status", "on"])
 def test_a_port_lost_after_the_probe_read_x_rays_on_ends_on_the_warning(monkeypatch, action):
-    """dialect auto: the probe reaches the controller and reads X-rays on (left by an earlier
-    `source on`), then the port cannot be opened again (another program took it, the adapter
+    """dialect auto: the probe reaches the controller and reads X-rays on (left by other
+    software or a crash), then the port cannot be opened again (another program took it, the adapter
     dropped out). That is not "never reached the controller" (exit 1, no warning): nothing could
     switch the tube off, so the command ends on the warning, exit 3. The race is caused by
     stopping the emulator right after the probe -- a fake, the only way to time it."""
@@ -1972,7 +1972,7 @@ def test_a_port_lost_after_the_probe_read_x_rays_on_ends_on_the_warning(monkeypa
             return result
 
         monkeypatch.setattr(l8121, "probe", probe_then_port_gone)
-        extra = ["--kv", "60", "--ua", "250"] if action == "on" else []
+        extra = ["--kv", "60", "--ua", "250", "--for", "0.2"] if action == "on" else []
         res = run_cli("acquire", "source", action, "--port", server.url, *extra)
     finally:
         server.stop()
@@ -2253,7 +2253,7 @@ def test_cli_source_actions_on_a_port_that_cannot_be_opened_share_one_exit_code(
     """Found: probe ended 2 (as an option refused), status/warm-up/on 1 with a bare error line, off
     3. README's exit codes: 2 an option refused, 1 a device error, 3 the tube may still be on. Now
     every action but off ends 1 on the line a series ends on (radiokit never reached the controller,
-    so it sent nothing); off ends 3 on the warning (an earlier `source on` may have left X-rays on)."""
+    so it sent nothing); off ends 3 on the warning (other software or a crash may have left X-rays on)."""
     from acquisition.cli import NEVER_REACHED
     from acquisition.guardian import TUBE_WARNING
     from radiokit.cli import main
@@ -2264,7 +2264,7 @@ def test_cli_source_actions_on_a_port_that_cannot_be_opened_share_one_exit_code(
         ("probe", [], 1, NEVER_REACHED),
         ("status", given, 1, NEVER_REACHED),
         ("warm-up", given + ["-q"], 1, NEVER_REACHED),
-        ("on", given + ["--kv", "60", "--ua", "250"], 1, NEVER_REACHED),
+        ("on", given + ["--kv", "60", "--ua", "250", "--for", "0.2"], 1, NEVER_REACHED),
         ("off", given, 3, TUBE_WARNING),
     ]:
         assert main(["acquire", "source", action, "--port", port, *extra]) == code, action
@@ -2285,7 +2285,7 @@ def test_cli_source_off_that_cannot_reach_the_controller_warns_loudly(tmp_path, 
     assert TUBE_WARNING not in capsys.readouterr().err
 
 
-# the tube left on by an earlier `source on`, then a fault that makes the connect fail
+# the tube left on by other software or a crash, then a fault that makes the connect fail
 SWITCH_ON = {"A": ["HIV 60", "CUR 250", "XON"], "B": ["PHV 600", "PCU 250", "XON"]}
 EMITTING = {"XON", "WUP", "HIV", "CUR", "PHV", "PCU", "RST"}  # never sent by a switch-off
 
@@ -2310,7 +2310,7 @@ def _another_model(model):
 def test_cli_source_off_sends_xof_when_the_connect_fails(dialect, fault, on, confirmed):
     """`source off` whose connect fails after the port opened (the identity query unanswered,
     garbled or naming another model, B's operate switch not on REMOTE, STS refused) sent no XOF:
-    it warned and left a tube an earlier `source on` had switched on as it was. Now XOF goes out
+    it warned and left a tube left on before it (other software, a crash) as it was. Now XOF goes out
     all the same and STS is asked: confirmed, the error ends exit 1 with the tube off; not
     confirmed, the warning, exit 3. Nothing that emits is sent."""
     from conftest import run_cli
@@ -2410,6 +2410,7 @@ def test_off_after_a_silent_probe_sends_xof_at_each_rate_without_waiting_on_sts(
         ("off", ["--ua", "100"]),
         ("on", ["--kv", "60", "--ua", "250", "--timeout", "5"]),
         ("status", ["--ready-timeout", "5"]),
+        ("off", ["--for", "5"]),
         ("probe", ["--reply-timeout", "5"]),
     ],
 )
@@ -2430,7 +2431,9 @@ def test_cli_source_options_an_action_does_not_read_are_refused(action, extra, c
 def test_cli_source_time_outs_that_are_not_a_positive_finite_time_are_refused(option, value):
     from conftest import run_cli
 
-    res = run_cli("acquire", "source", "on", "--port", "/dev/null", "--kv", "60", "--ua", "250", option, value)
+    res = run_cli(
+        "acquire", "source", "on", "--port", "/dev/null", "--kv", "60", "--ua", "250", "--for", "1", option, value
+    )
     assert res.returncode == 2 and res.stderr.strip() == (
         f"error: {option} {float(value):g}: expected a positive finite number of seconds; nothing was sent"
     )
@@ -2455,11 +2458,10 @@ def test_cli_source_commands_speak_the_configured_dialect(dialect, capsys):
     with PtyServer(model) as server:
         assert main(["acquire", "source", "status", "--port", server.url, "--dialect", dialect]) == 0
         assert "STANDBY" in capsys.readouterr().out
-        assert (
-            main(["acquire", "source", "on", "--port", server.url, "--kv", "60", "--ua", "250", "--dialect", dialect])
-            == 0
-        )
-        assert model.xray_on
+        on = ["--kv", "60", "--ua", "250", "--for", "0.2", "--dialect", dialect]
+        assert main(["acquire", "source", "on", "--port", server.url, *on]) == 0
+        assert not model.xray_on and "XON" in model.commands
+        model.left_on()
         assert main(["acquire", "source", "off", "--port", server.url]) == 0  # auto: probes first
         assert not model.xray_on
 
@@ -2473,13 +2475,13 @@ def test_a_bad_environment_setting_does_not_stop_a_switch_off(dialect, capsys, m
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         assert main(["acquire", "source", "off", *port]) == 0
         assert not model.xray_on
 
 
 def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
-    """A tube left on (``source on``) is found on by ``status``, whose link is then let go, and the
+    """A tube left on (other software, a crash) is found on by ``status``, whose link is then let go, and the
     driver lets no link go with X-rays on: the switch-off happened after the line said XRAY_ON.
     The last line says so, with the state STS confirmed."""
     from radiokit.cli import main
@@ -2488,7 +2490,7 @@ def test_cli_source_status_ends_on_the_state_it_leaves(dialect, capsys):
     port = ["--port", "", "--dialect", dialect]
     with PtyServer(model) as server:
         port[1] = server.url
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capsys.readouterr()
         assert main(["acquire", "source", "status", *port]) == 0
         first, last = capsys.readouterr().out.splitlines()
@@ -2507,9 +2509,9 @@ def test_cli_source_on_twice_switches_off_and_says_so(dialect, capsys):
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capsys.readouterr()
-        assert main(["acquire", "source", "on", *port, "--kv", "70", "--ua", "200"]) == 1
+        assert main(["acquire", "source", "on", *port, "--kv", "70", "--ua", "200", "--for", "0.2"]) == 1
         last = capsys.readouterr().err.strip().splitlines()[-1]
         assert not model.xray_on and "set_values()" not in last
         assert "X-rays are already on (state XRAY_ON)" in last
@@ -2530,9 +2532,8 @@ def test_cli_source_on_whose_xon_echo_is_garbled_says_the_tube_is_off(capsys):
 
     model = Garbled(dialect="A", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
-        assert (
-            main(["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]) == 1
-        )
+        on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A"]
+        assert main([*on, "--kv", "60", "--ua", "250", "--for", "1"]) == 1
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "XON" in last and last.endswith("X-rays off, confirmed by STS: STANDBY"), last
     assert not model.xray_on and "XOF" in model.commands
@@ -2549,6 +2550,7 @@ def test_cli_source_on_whose_connect_sent_xof_ends_on_the_tubes_state(capsys, di
     with PtyServer(model) as server:
         model.inject_after(WIRE[dialect]["connect_last"], lambda: model.delay_once(1.0, "STS"))
         args = ["--port", server.url, "--dialect", dialect, "--reply-timeout", "0.5", "--kv", "60", "--ua", "250"]
+        args += ["--for", "0.2"] if action == "on" else []
         assert main(["acquire", "source", action, *args]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert "no reply to STS within 0.5 s" in err[-2], err
@@ -2569,7 +2571,7 @@ def test_cli_source_off_confirmed_by_its_last_attempt_says_the_tube_is_off(worde
     model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "A"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capsys.readouterr()
         model.ramp_down(4.5)
         assert main(["acquire", "source", "off", *port]) == 1
@@ -2589,7 +2591,8 @@ def test_cli_source_errors_name_command_line_steps_not_python_calls(capsys):
 
     model = L8121Model(dialect="A", ramp_s=0.1)  # cold: warm-up needed
     with PtyServer(model) as server:
-        on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A", "--kv", "60", "--ua", "250"]
+        on = ["acquire", "source", "on", "--port", server.url, "--dialect", "A"]
+        on += ["--kv", "60", "--ua", "250", "--for", "1"]
         assert main(on) == 1
         err = capsys.readouterr().err
         assert "warm-up needed, " in err and f"(`radiokit acquire source warm-up --port {server.url}`)" in err
@@ -2618,7 +2621,7 @@ def test_cli_source_status_reads_a_b_unit_whose_operate_switch_is_not_remote(swi
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "B"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         model.set_operate_switch(switch)
         capsys.readouterr()
         assert main(["acquire", "source", "status", *port]) == 3
@@ -2648,10 +2651,10 @@ def test_cli_source_command_with_b_operate_switch_local_and_x_rays_on_says_one_e
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect_]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         model.set_operate_switch("LOCAL")
         capsys.readouterr()
-        more = ["--kv", "60", "--ua", "250"] if action == "on" else []
+        more = ["--kv", "60", "--ua", "250", "--for", "0.2"] if action == "on" else []
         assert main(["acquire", "source", action, *port, *more]) == 3
         err = capsys.readouterr().err.strip().splitlines()
         errors = [line for line in err if line.startswith("error:")]
@@ -2688,7 +2691,7 @@ def test_cli_source_operate_switch_line_is_decided_by_a_field_not_the_message(mo
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "B"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         model.set_operate_switch("LOCAL")
         capsys.readouterr()
         assert main(["acquire", "source", "off", *port]) == 3
@@ -2798,7 +2801,7 @@ def test_b_sts_error_that_outlasts_the_power_on_checks_is_switched_off_at_close(
 
 def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
     """`source status` read B's STS ERROR as PREHEATING, printed it and ended 0 -- with X-rays on
-    from an earlier `source on` (SHV read 60 kV), left on, and not a word of it. Now a state that
+    from an earlier session (SHV read 60 kV), left on, and not a word of it. Now a state that
     does not show X-rays off, with a beam measured, is switched off; unconfirmed, the last line is
     the warning, exit 3 (README). With nothing measured it may be the notes' pre-heating, but
     ERROR is also how B refuses a query: STS has not confirmed the tube off, so the end is the
@@ -2810,7 +2813,7 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "B"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         model.sts_error()
         capsys.readouterr()
         n = len(model.log)
@@ -2833,14 +2836,14 @@ def test_cli_status_of_a_b_unit_answering_sts_error_ends_on_the_warning(capsys):
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_the_warning_of_x_rays_on_at_connect_tells_the_operator_what_happens(dialect, caplog):
-    """`source status` on a tube an earlier `source on` left on: the connect's warning is read by
+    """`source status` on a tube left on (other software, a crash): the connect's warning is read by
     an operator. Found: it said "close() will switch them off", a Python call."""
     from radiokit.cli import main
 
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
             assert main(["acquire", "source", "status", *port]) == 0
     said = [r.getMessage() for r in caplog.records if "at connect" in r.getMessage()]
@@ -2850,7 +2853,7 @@ def test_the_warning_of_x_rays_on_at_connect_tells_the_operator_what_happens(dia
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_cli_status_of_a_unit_found_on_then_read_off_switches_off_and_says_so(dialect, capsys):
-    """X-rays on at connect (an earlier `source on`), then the beam tripped at the controller before
+    """X-rays on at connect (left on by other software, a crash), then the beam tripped at the controller before
     status read STS: STANDBY was printed, then the warning, exit 3, while close() confirmed the
     switch-off unseen. Now status switches off, confirms it and says so: exit 0."""
     from radiokit.cli import main
@@ -2858,7 +2861,7 @@ def test_cli_status_of_a_unit_found_on_then_read_off_switches_off_and_says_so(di
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.05)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capsys.readouterr()
         model.inject_after("STS", lambda: model.handle("XOF"))  # the connect's STS reads on, then it trips
         assert main(["acquire", "source", "status", *port]) == 0
@@ -2915,7 +2918,7 @@ def test_a_rate_l8121_md_does_not_list_is_used_with_a_warning_and_reaches_the_un
     model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1, baudrate=19200)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "A", "--baudrate", "19200"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         assert main(["acquire", "source", "off", *port]) == 0
         assert not model.xray_on
     caplog.clear()
@@ -3790,7 +3793,7 @@ def test_the_guardian_watchdog_waits_for_the_acquiring_processs_first_request(di
 
 
 def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
-    """A tube left on by an earlier run (``source on``), never read through the guardian: a poll
+    """A tube left on by an earlier run (other software, a crash), never read through the guardian: a poll
     meets a read error as the path moves to a second unit (same model, off), and the acquiring
     process dies. The guardian's watch started at "off", so the reconnect went unflagged and its
     switch-off, confirmed by unit 2, said "confirmed" (exit 0) with unit 1 on (review s28-h8). It
@@ -3800,7 +3803,7 @@ def test_the_guardian_counts_a_tube_it_never_read_as_may_be_on(tmp_path, capfd):
     with _two_units_behind_one_path(tmp_path, "A") as (one, two, first, second, port):
         earlier = L8121(first.url, dialect="A", **FAST)
         earlier.on(60, 250)
-        earlier.detach()  # as `radiokit acquire source on` leaves it
+        earlier.detach()  # as other software or a crash leaves it
         resolved = L8121(str(port), dialect="A", connect=False, **FAST).resolved_config()
         link = start_guardian(str(port), resolved)
         one.hold_once("SIN")  # its reply lost at the read error: retried at unit 2, after the model check
@@ -4227,7 +4230,7 @@ def test_the_guardian_switches_off_for_a_process_killed_before_its_ready(tmp_pat
     with PtyServer(model) as server:
         earlier = L8121(server.url, dialect=dialect, **FAST)
         earlier.on(60, 250)
-        earlier.detach()  # as `radiokit acquire source on` leaves it
+        earlier.detach()  # as other software or a crash leaves it
         resolved = L8121(server.url, dialect=dialect, connect=False, **FAST).resolved_config()
         args = [sys.executable, "-c", _KILLED_AT_START, server.url, json.dumps(resolved.to_dict()), str(notebook)]
         env = dict(os.environ, PYTHONPATH=str(REPO))
@@ -4263,7 +4266,7 @@ def test_a_process_killed_before_its_first_request_needs_no_watchdog(tmp_path):
     with PtyServer(model) as server:
         earlier = L8121(server.url, dialect="A", **FAST)
         earlier.on(60, 250)
-        earlier.detach()  # as `radiokit acquire source on` leaves it
+        earlier.detach()  # as other software or a crash leaves it
         resolved = L8121(server.url, dialect="A", connect=False, **FAST).resolved_config()
         args = [sys.executable, "-c", _KILLED_BEFORE_ITS_FIRST_REQUEST, server.url, json.dumps(resolved.to_dict())]
         child = subprocess.run([*args, str(notebook)], env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=60)
@@ -4338,7 +4341,7 @@ def test_the_guardian_watchdogs_retries_are_told_in_one_short_line_each(dialect,
 
 def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(tmp_path, dialect, caplog):
     """The direct link's form of what the guardian closed (review s28-h8): unit 1 left on by an
-    earlier run (``source on``); a new session's connect meets a read error during its first STS
+    earlier run (other software, a crash); a new session's connect meets a read error during its first STS
     as the path moves to unit 2 (same model, off), retried there after the model check. Until a
     state is read the tube may be on, so that STS is the unit's now at the port: the driver said
     ``tube_confirmed_off`` (``source status``/``off``: "tube off (confirmed)", exit 0) with unit 1
@@ -4346,7 +4349,7 @@ def test_the_driver_counts_a_tube_it_never_read_as_may_be_on_across_a_reconnect(
     with _two_units_behind_one_path(tmp_path, dialect) as (one, two, first, second, port):
         earlier = L8121(first.url, dialect=dialect, **FAST)
         earlier.on(60, 250)
-        earlier.detach()  # as `radiokit acquire source on` leaves it
+        earlier.detach()  # as other software or a crash leaves it
         one.hold_once("STS")  # its reply lost at the read error: retried at unit 2, after the check
         one.inject_after("STS", _path_moves(port, first, second))
         with caplog.at_level(logging.WARNING, logger="acquisition.l8121"):
@@ -4633,7 +4636,7 @@ def test_a_series_whose_guardian_could_not_switch_off_ends_on_the_warning(tmp_pa
 
 @pytest.mark.parametrize("end", ["says-not-confirmed", "killed-after-its-xof"])
 def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(end, capfd, monkeypatch):
-    """`source warm-up` on a tube an earlier `source on` left on; its guardian's start fails and
+    """`source warm-up` on a tube left on (other software, a crash); its guardian's start fails and
     its switch-off meets a stuck tube. It says so (``O 3``): the warning, exit 3. Or it dies right
     after its ``XOF`` (it had opened the port: READY), without a word on the tube. Found (review
     s33-r2): that ended on "radiokit never reached the X-ray controller (its port could not be
@@ -4644,7 +4647,7 @@ def test_source_warm_up_whose_guardian_did_not_confirm_off_ends_on_the_warning(e
     model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "A"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()  # (what `on` said)
         helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, kill_after_xof=end != "says-not-confirmed")
         code = main(["acquire", "source", "warm-up", *port])
@@ -4729,7 +4732,7 @@ def test_a_guardian_slow_in_its_switch_off_after_a_failed_start_is_not_killed(mo
     model = L8121Model(dialect="A", warmed_up=True, ramp_s=RAMP_S)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "A", "--reply-timeout", str(_SHORT_REPLY_S)]
-        assert main(["acquire", "source", "on", *port[:4], "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()
         helper = _a_failed_start_meets_a_stuck_tube(model, monkeypatch, slow_s=0.9 * _SHORT_REPLY_S)
         code = main(["acquire", "source", "warm-up", *port])
@@ -4744,7 +4747,7 @@ def test_a_guardian_slow_in_its_switch_off_after_a_failed_start_is_not_killed(mo
 
 @pytest.mark.parametrize("stop", [None, signal.SIGINT], ids=["failed-start", "ctrl-c"])
 def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(stop, capfd, monkeypatch):
-    """`source warm-up` on a tube an earlier `source on` left on; its guardian's start fails (held
+    """`source warm-up` on a tube left on (other software, a crash); its guardian's start fails (held
     past a 1 s start, or a Ctrl-C while it starts) and the guardian dies (SIGKILL) as its
     switch-off's ``XOF`` goes out, that ``XOF`` lost on the line (the one fake here: a byte lost as
     a process dies cannot be caused on a pseudo-terminal). Found (review s33-r4): recording such a
@@ -4778,7 +4781,7 @@ def test_a_guardian_dead_in_its_switch_off_leaves_the_switch_off_to_the_command(
 
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "A"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()
         helper = threading.Thread(target=run, daemon=True)
         helper.start()
@@ -4862,8 +4865,7 @@ def test_a_guardian_killed_before_ready_leaves_the_command_to_switch_off_a_tube_
 
     with PtyServer(model) as server:
         port = ["--port", server.url]
-        assert main(["acquire", "source", "on", *port, "--dialect", "A", "--kv", "60", "--ua", "250"]) == 0
-        assert model.xray_on
+        model.left_on()
         capfd.readouterr()
         _a_slow_guardian_start(monkeypatch)
         helper = threading.Thread(target=kill_the_guardian, daemon=True)
@@ -4898,7 +4900,7 @@ def test_a_guardian_killed_in_the_first_exchange_after_ready_is_named_not_the_di
     killed = []
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()
         n = len(model.commands)
         model.delay_once(1.0, first)  # its reply on its way while the guardian dies: an event, not a race
@@ -4958,7 +4960,7 @@ def test_a_guardian_killed_as_it_starts_with_the_dialect_given_leaves_the_comman
                 url.unlink()
             os.kill(held[0], signal.SIGKILL)
 
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()
         _a_slow_guardian_start(monkeypatch, startup_timeout_s=20.0)  # killed well within its start
         helper = threading.Thread(target=kill_the_guardian, daemon=True)
@@ -5023,8 +5025,7 @@ def test_a_series_whose_guardian_is_killed_as_it_starts_switches_off_through_the
                 url.unlink()
             os.kill(held[0], signal.SIGKILL)
 
-        port = ["--port", str(url), "--dialect", "A"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0 and model.xray_on
+        model.left_on()
         capfd.readouterr()
         _a_slow_guardian_start(monkeypatch, startup_timeout_s=20.0)  # killed well within its start
         helper = threading.Thread(target=kill_the_guardian, daemon=True)

@@ -93,9 +93,8 @@ def test_settings_outside_the_ratings_are_refused_before_anything_is_sent(dialec
         unit.ready(warmed=True)
         # in this process: a refusal needs no process of its own (no signal, no guardian), and a
         # subprocess cost ~0.35 CPU s of interpreter and imports for each of the six rows
-        res = run_cli(
-            "acquire", "source", "on", "--port", unit.port, "--dialect", dialect, "--kv", str(kv), "--ua", str(ua)
-        )
+        port = ["--port", unit.port, "--dialect", dialect]
+        res = run_cli("acquire", "source", "on", *port, "--kv", str(kv), "--ua", str(ua), "--for", "1")
         assert res.returncode == 2, res.stdout + res.stderr
         assert unit.log == [] and not unit.emitting
 
@@ -202,15 +201,16 @@ def test_a_series_stops_with_the_tube_off_against_the_independent_model(dialect,
 
 
 def test_source_warm_up_after_source_on_says_in_command_line_terms_that_the_tube_is_off(dialect):
-    """``source warm-up`` on a tube an earlier ``source on`` left on refuses (a warm-up is not an
-    exposure) and switches off. Found: its error line named Python calls (``call off() before
+    """``source warm-up`` on a tube left on (by other software, a crash) refuses (a warm-up is not
+    an exposure) and switches off. Found: its error line named Python calls (``call off() before
     warm_up()``) and said nothing of the tube, which close() had switched off, confirmed."""
     with Controller(dialect, ramp_s=0.1) as unit:
         unit.ready(warmed=True)
         port = ["--port", unit.port, "--dialect", dialect]
-        on = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
-        on.communicate(timeout=60)
-        assert on.returncode == 0 and unit.emitting
+        earlier = L8121(unit.port, dialect=dialect).connect()
+        earlier.on(60, 250)
+        earlier.detach()  # as other software or a crash leaves it
+        assert unit.emitting
         proc = _radiokit("acquire", "source", "warm-up", *port)
         out = proc.communicate(timeout=60)[0]
         assert not unit.emitting
@@ -330,23 +330,37 @@ def test_the_model_loses_no_command_for_its_own_pause_after_a_reply(dialect, mon
     assert [reply for _, _, reply in unit.log] == replies
 
 
-def test_source_on_killed_in_its_ramp_has_told_the_operator_and_status_reads_the_beam(dialect):
-    """``source on`` leaves the beam on by design; ``kill -9`` in its ramp (no handler runs) ends it
-    before its last line. Found: nothing at all had been printed, so the operator was not told
-    that X-rays were on. Now a line before ``XON`` says so and names ``source off``; ``source
-    status`` then reads the beam on and switches it off, confirmed (already so)."""
-    with Controller(dialect, ramp_s=30.0) as unit:
+# the hold in both dialects (the guardian's switch-off is the dialect's); the ramp's path is the same in both
+@pytest.mark.parametrize("dialect, where", [("A", "ramp"), ("A", "hold"), ("B", "hold")])
+def test_source_on_killed_has_told_the_operator_and_its_guardian_switches_off(dialect, where):
+    """``kill -9`` of ``source on`` (no handler runs), in its ramp or in its hold: the line before
+    ``XON`` had said how long the beam stays on and that it is switched off at its end, and the
+    guardian that holds the port switches off, confirmed by STS (L8121.md: off on every exit path).
+    Before: ``source on`` ran without a guardian and left the beam on by design, and the killed
+    command's tube stayed on until someone ran ``source off``."""
+    with Controller(dialect, ramp_s=30.0 if where == "ramp" else 0.1) as unit:
         unit.ready(warmed=True)
         port = ["--port", unit.port, "--dialect", dialect]
-        proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250")
-        # in the ramp (30 s)
-        out = _act_when(proc, lambda: unit.emitting, lambda: proc.send_signal(signal.SIGKILL), wait_s=60, settle_s=0.3)
-        assert unit.emitting
-        assert "switching X-rays ON at 60 kV 250 uA" in out and "acquire source off --port" in out, out
-        status = _radiokit("acquire", "source", "status", *port)
-        said = status.communicate(timeout=60)[0]
-        assert status.returncode == 0 and not unit.emitting, said
-    assert "state XRAY_ON" in said and "switched off (confirmed: state STANDBY)" in said, said
+        proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "60")
+        said: list[str] = []  # its lines as they come (the guardian's too: it shares the pipe)
+        reader = threading.Thread(target=lambda: said.extend(proc.stdout), daemon=True)
+        reader.start()
+        try:
+            # in the ramp (30 s), or once the hold's line says the beam is stable and held
+            held = lambda: any(" until " in line for line in said)
+            assert _wait(lambda: unit.emitting if where == "ramp" else held(), 60), said
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGKILL)
+            assert _wait(lambda: not unit.emitting, 10), said
+        finally:
+            proc.kill()
+            proc.wait()
+        reader.join(timeout=30)  # the guardian's last line: it exits after its switch-off
+    out = "".join(said)
+    assert proc.returncode == -signal.SIGKILL, out
+    assert "switching X-rays ON at 60 kV 250 uA for 60 s: switched off at its end, or at Ctrl-C" in out, out
+    assert (" until " in out) == (where == "hold"), out  # killed where it was meant to be
+    assert "X-rays off (confirmed by STS" in out, out  # the guardian's word (stderr, merged)
 
 
 def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
@@ -356,9 +370,8 @@ def test_source_on_stopped_by_ctrl_backslash_in_its_ramp_switches_off(dialect):
     Ctrl-C does: XOF, confirmed by STS, exit 128 + 3 on the confirmed line."""
     with Controller(dialect, ramp_s=30.0) as unit:
         unit.ready(warmed=True)
-        proc = _radiokit(
-            "acquire", "source", "on", "--port", unit.port, "--dialect", dialect, "--kv", "60", "--ua", "250"
-        )
+        port = ["--port", unit.port, "--dialect", dialect]
+        proc = _radiokit("acquire", "source", "on", *port, "--kv", "60", "--ua", "250", "--for", "60")
         out = _act_when(proc, lambda: unit.emitting, lambda: proc.send_signal(signal.SIGQUIT), wait_s=60, settle_s=0.3)
         assert not unit.emitting, out
     assert proc.returncode == 128 + signal.SIGQUIT, out

@@ -5,7 +5,7 @@ path (the driver on its own serial link, no guardian).
 path, Ctrl-C included. A signal that cuts the wait for a reply short leaves that reply on its way:
 the switch-off that follows must not read it as the ``XOF``'s answer (each command then read the
 previous one's reply and the switch-off was never confirmed). And an interrupt during the connect
-of a unit left on (by ``source on``) must still switch it off once the dialect is known.
+of a unit left on (by other software, a crash) must still switch it off once the dialect is known.
 
 Real pyserial on a pseudo-terminal with radiokit's emulator; the replies are delayed
 (``L8121Model.slow``) so that the interrupt lands while one is pending. The interrupt is a real
@@ -164,7 +164,7 @@ def test_an_interrupt_in_the_connect_checks_after_the_probe_saw_x_rays_on_switch
     "action, given", [("off", "B"), ("off", "auto"), ("on", "B"), ("on", "auto"), ("warm-up", "B")]
 )
 def test_source_command_interrupted_while_connecting_switches_off_or_warns(action, given):
-    """``radiokit acquire source off`` (or ``on``) on a unit left on by ``source on``, a real SIGINT
+    """``radiokit acquire source off`` (or ``on``) on a unit left on by other software or a crash, a real SIGINT
     while the connect waits for a reply (the probe's, with ``auto``): the switch-off is sent all
     the same -- in the dialect given, or, for ``off`` alone, as the XOF both dialects share when
     the interrupted probe found none -- after one reply time-out for the cut-short reply, and
@@ -188,7 +188,7 @@ def test_source_command_interrupted_while_connecting_switches_off_or_warns(actio
         n = len(model.commands)
         cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", action, "--port", server.url]
         cmd += ["--reply-timeout", "1"]  # the wait for the cut-short reply: a shorter row
-        cmd += ["--kv", "60", "--ua", "250"] if action == "on" else []
+        cmd += ["--kv", "60", "--ua", "250", "--for", "0.2"] if action == "on" else []
         p = subprocess.Popen(cmd + ([] if given == "auto" else ["--dialect", given]), stderr=subprocess.PIPE, text=True)
         t0 = time.monotonic()
         while len(model.commands) == n and time.monotonic() - t0 < 30:
@@ -219,7 +219,7 @@ def test_status_of_a_local_unit_found_on_that_then_fails_ends_on_the_warning(cap
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "B"]
-        assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0
+        model.left_on()
         model.set_operate_switch("LOCAL")
         model.inject_after("SHV", lambda: model.garbage(True))
         capsys.readouterr()
@@ -307,7 +307,7 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
     last line of a ``status`` whose connect failed, then drops one; the signal and the finalizer
     are real). The
     stop was delivered again after the command had returned: a KeyboardInterrupt at the caller
-    after the last line (and `on` had left the tube on, exit 0). Now ``on`` switches off as for
+    after the last line. Now ``on`` switches off as for
     any stop (confirmed, exit 130), and ``status``, which ended on the warning, still ends on it
     with exit 3 and nothing after. The moment before the stop is delivered again is made long
     (1 s), so that the command surely ends within it."""
@@ -321,7 +321,7 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
     with PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", "B"]
         if action == "status":  # a tube left on, then garbled replies: the connect fails, the warning, exit 3
-            assert main(["acquire", "source", "on", *port, "--kv", "60", "--ua", "250"]) == 0
+            model.left_on()
             model.garbage(True)
             port += ["--reply-timeout", "0.5"]
             where = "_source_error_code"
@@ -331,7 +331,15 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
         capsys.readouterr()
         try:
             codes.append(
-                main(["acquire", "source", action, *port, *(["--kv", "60", "--ua", "250"] * (action == "on"))])
+                main(
+                    [
+                        "acquire",
+                        "source",
+                        action,
+                        *port,
+                        *(["--kv", "60", "--ua", "250", "--for", "0.2"] * (action == "on")),
+                    ]
+                )
             )
             for _ in range(200):  # twice the moment: a stop delivered after the command lands here
                 time.sleep(0.01)
@@ -348,7 +356,7 @@ def test_a_stop_lost_as_a_source_command_ends_keeps_its_last_line(action, monkey
 
 @pytest.mark.parametrize("given", ["auto", "B"])
 def test_a_warm_up_interrupted_while_its_guardian_starts_ends_with_the_guardian(given):
-    """``source warm-up`` on a unit left on by ``source on``, a real SIGINT while the command waits
+    """``source warm-up`` on a unit left on by other software or a crash, a real SIGINT while the command waits
     for its guardian to start (the guardian held there, see ``guardian_held_at_start``). Found in
     review: nobody stopped the guardian it had launched; with ``auto`` the command switched off
     through the port itself while the guardian still held it, exited 130, and the guardian

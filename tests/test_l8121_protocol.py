@@ -108,7 +108,7 @@ def test_connect(dialect):
         # a connect refused for the model or the operate switch asks STS once first (a query), so
         # that the command's end knows whether the tube showed off (README: exit codes); then every
         # refused connect of a session that controls the tube sends XOF all the same, confirmed by
-        # STS (an earlier `source on` may have left the tube on, and nobody has read it off)
+        # STS (other software or a crash may have left the tube on, and nobody has read it off)
         (
             "A",
             [("TYP", "TYP L8121-02"), ("STS", "STS 2"), *OFF["A"]],

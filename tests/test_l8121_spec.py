@@ -654,7 +654,7 @@ def test_a_source_command_whose_switch_off_is_not_confirmed_ends_as_a_series_doe
     from radiokit.cli import main
 
     model = SpecModel(dialect, warm=True)
-    model.state, model.t_on = "XON", time.monotonic()  # left on (`source on`)
+    model.state, model.t_on = "XON", time.monotonic()  # left on (other software, a crash)
     model.relay_stuck = True
     # the real driver, giving up sooner than its 3 s per switch-off (off_confirm_s)
     monkeypatch.setattr(acquisition.l8121, "L8121", functools.partial(L8121, off_confirm_s=0.3, poll_s=0.05))

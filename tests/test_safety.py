@@ -576,7 +576,7 @@ def test_a_port_lost_after_the_probe_follows_the_one_rule(tmp_path, scene_file, 
     model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.05)
     server = PtyServer(model).start()
     try:
-        if left_on:  # an earlier `source on`
+        if left_on:  # by other software or a crash
             assert [model.handle(c) for c in ("HIV 60", "CUR 250", "XON")][-1] == "XON"
         real = l8121.probe
         # the port by a name the test controls: a /dev/pts number freed by the stop below was
@@ -610,7 +610,7 @@ def test_a_port_lost_after_the_probe_follows_the_one_rule(tmp_path, scene_file, 
 
 @ONE_DIALECT
 def test_a_series_refused_at_connect_switches_a_tube_left_on_off(tmp_path, scene_file, controller):
-    """A unit left on by an earlier `source on` that names another model: the series' connect
+    """A unit left on by other software or a crash that names another model: the series' connect
     (through the guardian) is refused, and it sent no XOF -- the tube stayed on, the warning, exit
     3. Now the refused connect sends XOF and reads STS: the error ends exit 1 on the confirmed
     line, and the tube is off."""
@@ -646,7 +646,7 @@ SOURCE_TIMES = ["--reply-timeout", "0.3"]
 ACTIONS = {
     "status": [],
     "warm-up": ["-q", "--ready-timeout", "0.3"],
-    "on": ["--kv", "60", "--ua", "250", "--ready-timeout", "0.3"],
+    "on": ["--kv", "60", "--ua", "250", "--for", "0.2", "--ready-timeout", "0.3"],
     "off": [],
     "series": None,
 }
@@ -774,11 +774,11 @@ def _after_xon(model, act):
 UNCONFIRMED = {
     # on's fail-safe, its error path and its close() each tried a vanished port and each said so
     "on, port gone after XON": (
-        ["on", "--kv", "60", "--ua", "250"],
+        ["on", "--kv", "60", "--ua", "250", "--for", "0.2"],
         lambda model, server, port: _after_xon(model, lambda: (model.silence(), port.unlink(), server.stop())),
     ),
     "on, controller silent after XON": (
-        ["on", "--kv", "60", "--ua", "250"],
+        ["on", "--kv", "60", "--ua", "250", "--for", "0.2"],
         lambda model, server, port: _after_xon(model, model.silence),
     ),
     # the connect's XOF all the same: its failure was a log line above the connect's error line

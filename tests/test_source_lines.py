@@ -1,5 +1,6 @@
 """The error line `radiokit acquire source on` and `warm-up` end on after a fault that switched
-the tube off, in both dialects, through the command line and the emulator on a pseudo-terminal.
+the tube off, in both dialects, through the command line and the emulator on a pseudo-terminal;
+and the lines of `source on --for SECONDS`, which holds the beam that long and switches it off.
 
 The line says the fault, then what the switch-off found: "X-rays switched off, confirmed by STS:
 <state>" (and the controller's error code), or what the switch-off ran into, and then the X-rays
@@ -14,6 +15,8 @@ from __future__ import annotations
 import logging
 import os
 import re
+import signal
+import threading
 
 import pytest
 
@@ -50,6 +53,12 @@ def fast(monkeypatch):
 def _source(model, action, capsys, inject=None, *extra) -> tuple[int, list[str], str]:
     """Run ``radiokit acquire source ACTION`` against ``model`` in its dialect: the exit code, the
     non-empty stderr lines, and the port's name."""
+    code, _, err, port = _source_said(model, action, capsys, inject, *extra)
+    return code, err, port
+
+
+def _source_said(model, action, capsys, inject=None, *extra) -> tuple[int, list[str], list[str], str]:
+    """:func:`_source`, with the non-empty stdout lines too (before the stderr lines)."""
     from radiokit.cli import main
 
     with PtyServer(model) as server:
@@ -60,8 +69,8 @@ def _source(model, action, capsys, inject=None, *extra) -> tuple[int, list[str],
             code = main(args)
         finally:
             model.stuck_on(False)  # the server's own end must be able to close
-    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    return code, err, server.url
+    out, err = ([ln for ln in text.splitlines() if ln.strip()] for text in capsys.readouterr())
+    return code, out, err, server.url
 
 
 def _not_stable(kv=60, ua=250) -> str:
@@ -81,7 +90,7 @@ def _unconfirmed(state: str) -> str:
     )
 
 
-ON = ("--kv", "60", "--ua", "250")
+ON = ("--kv", "60", "--ua", "250", "--for", "5")  # the faults below come in the ramp: no hold
 
 
 @pytest.mark.parametrize(
@@ -234,8 +243,8 @@ def test_source_on_warns_of_its_rounding_once_and_sends_the_whole_numbers(dialec
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     with caplog.at_level(logging.WARNING), PtyServer(model) as server:
         port = ["--port", server.url, "--dialect", dialect]
-        assert main(["acquire", "source", "on", *port, "--kv", "60.4", "--ua", "249.6"]) == 0
-        assert model.xray_on and (model.set_kv, model.set_ua) == (60, 250)  # left on: the server's end ends it
+        assert main(["acquire", "source", "on", *port, "--kv", "60.4", "--ua", "249.6", "--for", "0.2"]) == 0
+        assert not model.xray_on and (model.set_kv, model.set_ua) == (60, 250)
     said = [r.getMessage() for r in caplog.records if "rounded to" in r.getMessage()]
     assert sorted(said) == [
         "tube current 249.6 µA rounded to 250 µA: radiokit sets whole µA (dialect A's commands take integers)",
@@ -255,8 +264,140 @@ def test_source_values_out_of_range_are_refused_before_the_port_is_opened(capsys
     from radiokit.cli import main
 
     kv, ua = values
-    code = main(["acquire", "source", action, "--port", "/dev/null/none", "--kv", kv, "--ua", ua])
+    held = ["--for", "1"] if action == "on" else []
+    code = main(["acquire", "source", action, "--port", "/dev/null/none", "--kv", kv, "--ua", ua, *held])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     assert err[0].startswith(f"error: --kv {float(kv):g} --ua {float(ua):g}: ") and said in err[0], err
     assert err[0].endswith("; nothing was sent"), err
+
+
+# -- `source on --for SECONDS`: the beam held, then switched off ---------------------------------
+
+HOLD = ("--kv", "60", "--ua", "250")
+#: the hold's line: the set values, the measured ones, and when it ends
+HELD = r"{port}: X-rays ON at 60 kV 250 uA \(measured [\d.]+ kV [\d.]+ uA\) until \d\d:\d\d:\d\d \({s} s\); Ctrl-C switches them off"
+
+
+def test_source_on_holds_the_beam_for_its_time_then_ends_on_the_confirmed_switch_off(dialect, capsys):
+    """`source on` left the beam on when it ended (L8121.md: never on while waiting for a person).
+    Now it says before XON how long, holds the beam that long polling it, and ends on XOF
+    confirmed by STS, exit 0."""
+    from acquisition.protocols.compression_series import SourceSettings
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    code, out, err, port = _source_said(model, "on", capsys, None, *HOLD, "--for", "0.3")
+    assert code == 0 and not model.xray_on and err == [], (out, err)
+    assert out[0] == f"{port}: switching X-rays ON at 60 kV 250 uA for 0.3 s: switched off at its end, or at Ctrl-C"
+    assert re.fullmatch(HELD.format(port=re.escape(port), s=r"0\.3"), out[1]), out
+    assert out[2:] == [f"{port}: 0.3 s over: tube off (confirmed by STS: STANDBY)"], out
+    # one XON; the beam held at least the time asked and polled meanwhile; then XOF, confirmed by STS
+    commands, times = [e.command for e in model.log], [e.t for e in model.log]
+    xon, xof = commands.index("XON"), commands.index("XOF")
+    assert commands.count("XON") == 1 and commands[xof:] == ["XOF", "STS"], commands
+    assert times[xof] - times[xon] >= 0.3
+    assert commands[xon:xof].count("SIN") >= 0.3 // SourceSettings.poll_s, commands  # the interlock watched
+
+
+@pytest.mark.parametrize(
+    "given, said",
+    [
+        ((), "'on' needs --for SECONDS: how long X-rays stay on (switched off at its end, or at Ctrl-C)"),
+        (
+            ("--for", "0"),
+            "--for 0: expected a positive number of seconds, at most 3600 (longer exposures are a protocol's)",
+        ),
+        (
+            ("--for", "nan"),
+            "--for nan: expected a positive number of seconds, at most 3600 (longer exposures are a protocol's)",
+        ),
+        (
+            ("--for", "3601"),
+            "--for 3601: expected a positive number of seconds, at most 3600 (longer exposures are a protocol's)",
+        ),
+    ],
+)
+def test_source_on_without_a_time_is_refused_before_the_port_is_opened(capsys, given, said):
+    """No open-ended beam from a command line: `on` without --for (or with one that is not a
+    positive time within the bound) is one line, exit 2, and the controller hears nothing."""
+    model = L8121Model(dialect="A", warmed_up=True)
+    code, out, err, _ = _source_said(model, "on", capsys, None, *HOLD, *given)
+    assert code == 2 and out == [] and err == [f"error: {said}; nothing was sent"], err
+    assert model.log == [] and not model.xray_on
+
+
+@pytest.mark.parametrize(
+    "fault, cause, state, code",
+    [
+        ("open_interlock", "interlock open", "STANDBY", ErrorCode.INTERLOCK),
+        ("overload", "overload", "OVERLOAD", ErrorCode.OVERLOAD),
+    ],
+)
+def test_a_fault_in_the_hold_ends_on_the_confirmed_switch_off(dialect, fast, capsys, fault, cause, state, code):
+    """The hold polls as a series' beam monitor does: an interlock opened (or an overload) while
+    the beam is held switches off, confirmed, and the line says why, exit 1 -- the same line as a
+    fault in the ramp."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
+    # 0.5 s after XON: past the ramp (0.1 s) and the wait for a stable beam (at most 0.3 s, FAST)
+    inject = lambda m: m.inject_after("XON", lambda: getattr(m, fault)(at_s=m.time + 0.5))
+    code_, out, err, port = _source_said(model, "on", capsys, inject, *HOLD, "--for", "5")
+    assert code_ == 1 and not model.xray_on, (out, err)
+    assert re.fullmatch(HELD.format(port=re.escape(port), s="5"), out[-1]), out  # it came in the hold
+    assert err[-1] == (
+        f"error: {port}: {cause}; X-rays switched off, confirmed by STS: {state}; controller error code {int(code)}"
+    )
+
+
+@pytest.mark.parametrize("sig, stuck", [("SIGINT", False), ("SIGTERM", False), ("SIGTERM", True)])
+def test_a_stop_in_the_hold_switches_off_as_every_source_command_stops(fast, capsys, monkeypatch, sig, stuck):
+    """Ctrl-C or kill in the hold: XOF, and the stop's line with the state STS confirmed, exit
+    128 + N; a relay stuck on (the switch-off not confirmed): the switch-off's failure, then the
+    X-rays warning last, exit 3."""
+    import acquisition.cli
+
+    signum, hold = getattr(signal, sig), acquisition.cli._hold_beam
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+
+    def stop():
+        if stuck:
+            model.stuck_on()
+        os.kill(os.getpid(), signum)
+
+    def stopped(*args):
+        timer = threading.Timer(0.3, stop)  # a real signal, 0.3 s into the hold
+        timer.start()
+        try:
+            return hold(*args)
+        finally:
+            timer.cancel()  # (the hold ended otherwise: no signal after the command)
+
+    monkeypatch.setattr(acquisition.cli, "_hold_beam", stopped)
+    code, out, err, port = _source_said(model, "on", capsys, None, *HOLD, "--for", "5")
+    assert re.fullmatch(HELD.format(port=re.escape(port), s="5"), out[-1]), out
+    if stuck:
+        assert code == 3 and err[-1] == TUBE_WARNING, err
+        # (as every source command whose stop's switch-off is not confirmed: that failure, then the warning)
+        assert err[-2] == f"error: {port}: {_unconfirmed('XRAY_ON')}", err
+        return
+    assert code == 128 + signum and not model.xray_on, err
+    assert err[-1] == f"stopped by {sig}; tube off (confirmed by STS: STANDBY)", err
+
+
+def test_a_hold_whose_switch_off_is_not_confirmed_ends_on_the_warning(fast, capsys, monkeypatch):
+    """The hold's own end is an exit path too: a relay stuck on as the time runs out (XOF answered,
+    STS still reads X-rays on) ends on that failure, then the X-rays warning, exit 3 -- never on
+    "tube off"."""
+    import acquisition.cli
+
+    hold = acquisition.cli._hold_beam
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+
+    def held_then_stuck(*args):
+        hold(*args)
+        model.stuck_on()
+
+    monkeypatch.setattr(acquisition.cli, "_hold_beam", held_then_stuck)
+    code, out, err, port = _source_said(model, "on", capsys, None, *HOLD, "--for", "0.2")
+    assert code == 3 and err[-1] == TUBE_WARNING, (out, err)
+    assert err[-2] == f"error: {port}: {_unconfirmed('XRAY_ON')}", err
+    assert not any("tube off" in line for line in out + err), (out, err)

@@ -452,6 +452,25 @@ class L8121Model:
         with self._lock:
             self._switch = position
 
+    def left_on(self, kv: int = 60, ua: int = 250) -> None:
+        """X-rays on at ``kv`` kV and ``ua`` µA, the ramp done: a unit as other software, a crash or
+        a power cut mid-exposure leaves it for the next command to find. Sent as a session would
+        (the settings, then ``XON``; logged like any exchange); a refusal raises.
+
+        Examples
+        --------
+        >>> m = L8121Model(warmed_up=True)
+        >>> m.left_on(60, 250); m.handle("SAR")
+        'SAR 3 60 250 0 0 0 0'
+        """
+        settings = ("HIV", "CUR") if self.dialect == "A" else ("PHV", "PCU")
+        lines = (f"{settings[0]} {round(kv * self.voltage_scale)}", f"{settings[1]} {ua}", "XON")
+        for line in lines:
+            if self.handle(line) in (None, "ERR", "ERROR"):
+                raise RuntimeError(f"L8121 emulator: {line!r} refused ({self!r}): not left on")
+        with self._lock:
+            self._ramp_t0 -= self.ramp_s
+
     def stuck_on(self, on: bool = True) -> None:
         """Acknowledge ``XOF`` but keep emitting (a failed high-voltage relay)."""
         with self._lock:

@@ -1872,7 +1872,7 @@ def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
 
 def _off_where_the_guardian_left(exc: BaseException) -> None:
     """A guardian that ended before READY (killed: the OOM killer) said nothing of the tube, which
-    an earlier `source on` may have left on: switched off through the port it freed, confirmed by
+    other software or a crash may have left on: switched off through the port it freed, confirmed by
     STS, as the source commands do (:func:`acquisition.guardian.off_anyway`); confirmed, the error
     carries that state (README's one rule: "tube off"), else the warning stays. Under this run's
     own lock on the port (:func:`run` holds it to the end): the switch-off's link shares it (one
