@@ -17,7 +17,6 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
-import cv2
 import h5py
 import numpy as np
 
@@ -347,6 +346,8 @@ def _local_median(image: np.ndarray, block: int, valid: np.ndarray | None = None
     # alone holds it flat for half a block. Tile centres sit at block/2; INTER_LINEAR maps centres
     # to centres, so the frame starts one block into the padded grid.
     med = _edge_trend(_edge_trend(med, 0), 1)
+    import cv2  # late: only this smoothing needs it; a command that judges no frames never imports it
+
     up = cv2.resize(med, ((nc + 2) * block, (nr + 2) * block), interpolation=cv2.INTER_LINEAR)
     return up[block : block + rows, block : block + cols]
 

@@ -12,9 +12,7 @@ import warnings
 from pathlib import Path
 
 import h5py
-import imagecodecs
 import numpy as np
-import tifffile
 
 from radiokit import _json as strict_json
 from radiokit.errors import FormatError, InputErrors, RadiokitError
@@ -339,7 +337,7 @@ class FrameSource:
         # before tifffile builds a page (its pages are the bomb); (pages, bytes charged) kept for
         # a multi-file set's other files, charged with it
         self._tiff_walk = check_tiff_pages(self.path, self._budget)
-        self._tif = tifffile.TiffFile(self.path)
+        self._tif = _tiff_file(self.path)
         if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
             raise FormatError(self.path, "TIFF holds no image")
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
@@ -551,7 +549,7 @@ class FrameSource:
             else:
                 name = page.parent.filehandle.path  # opened afresh: tifffile closes the files it followed
                 if name not in self._siblings:
-                    self._siblings[name] = tifffile.TiffFile(name)
+                    self._siblings[name] = _tiff_file(name)
                 parent = self._siblings[name]
             if id(parent) not in at:
                 at[id(parent)] = {int(p.offset): i for i, p in enumerate(parent.pages)}
@@ -663,7 +661,7 @@ class FrameSource:
         named: dict[str, set] = {}
         for name, uuid in dict.fromkeys((data.file, data.uuid) for data in found if data.file and data.uuid):
             named.setdefault(uuid, set()).add(name)
-            with tifffile.TiffFile(folder / name) as other:
+            with _tiff_file(folder / name) as other:
                 theirs = ome_root_uuid(other.ome_metadata if other.is_ome else None)
             if theirs != uuid or len(named[uuid]) > 1:
                 has = f"OME UUID {theirs}" if theirs else "no OME UUID"
@@ -952,6 +950,8 @@ class FrameSource:
         beyond the end of the file; a multi-page file cut at a page boundary then reads as a
         shorter stack. A truncated or corrupt file is an error here, not fewer pages.
         """
+        import tifffile
+
         tif = tif or self._tif
         path = self.path if tif is self._tif else Path(tif.filehandle.path)
         if tif.is_lsm or tif.is_scanimage or tif.is_ndpi:  # page lists tifffile builds itself
@@ -1222,6 +1222,9 @@ class FrameSource:
         """Strip or tile ``k`` of ``page`` as stored, decompressed: at most one byte more than
         16-bit words of its ``shape`` (rows, cols) would fill (the decoder allocates no more: a
         bomb stops there)."""
+        import imagecodecs
+        import tifffile
+
         fh = page.parent.filehandle  # (another file's, for a multi-file OME-TIFF's planes there)
         fh.seek(page.dataoffsets[k])
         data = fh.read(page.databytecounts[k])
@@ -1311,6 +1314,8 @@ class FrameSource:
     def _samples(self, page, data, rows, cols, words) -> np.ndarray:
         """The ``rows`` x ``cols`` samples decoded ``data`` holds, in whole words of ``words``
         bytes or packed rows, the horizontal predictor undone in their own (wrapping) type."""
+        import imagecodecs
+
         dtype = np.dtype(f"u{words}") if words else np.dtype(page.dtype)
         if words:
             out = np.frombuffer(data, np.dtype(f"{page.parent.byteorder}u{words}")).reshape(rows, cols)
@@ -1828,9 +1833,19 @@ def judge_all(paths, /, check, **hints) -> None:
         raise errors[0] if len(errors) == 1 else InputErrors(errors)
 
 
+def _tiff_file(path):
+    """``tifffile.TiffFile(path)``, tifffile imported here. Why late: only a TIFF input needs it
+    (and imagecodecs, which it imports), about 0.06 CPU s of each command's start."""
+    import tifffile
+
+    return tifffile.TiffFile(path)
+
+
 def _bits_reversed(frame: np.ndarray) -> np.ndarray:
     """``frame`` with the bits of each of its bytes reversed (TIFF FillOrder 2 undone; per byte,
     so the same in either byte order)."""
+    import imagecodecs
+
     return np.frombuffer(bytearray(imagecodecs.bitorder_decode(frame.tobytes())), frame.dtype).reshape(frame.shape)
 
 

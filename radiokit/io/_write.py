@@ -19,7 +19,6 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-import tifffile
 
 from radiokit import _json as strict_json
 from radiokit.errors import FormatError
@@ -155,6 +154,8 @@ class StackWriter:
             # for the IFDs) must be BigTIFF from its first page, or a page past the mark fails
             stack_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize * max(int(n_frames or 0), 1)
             auto = stack_bytes > 2**28 if n_frames is None else stack_bytes > 2**32 - 2**25
+            import tifffile  # late: only a TIFF output needs it
+
             self._tif = tifffile.TiffWriter(tmp, bigtiff=auto if bigtiff is None else bool(bigtiff))
 
     def _write_pixel_mask(self, entry) -> None:
