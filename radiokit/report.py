@@ -149,9 +149,10 @@ def _limits(a, lo=1.0, hi=99.0):
     return vmin, vmax
 
 
-def _normalise(a, lo=1.0, hi=99.0):
+def _normalise(a, lo=1.0, hi=99.0, step=1):
+    """``a`` scaled to its percentiles ``lo``-``hi`` of all pixels, at every ``step``-th pixel."""
     vmin, vmax = _limits(a, lo, hi)
-    out = (np.asarray(a, np.float64) - vmin) / (vmax - vmin)
+    out = (np.asarray(a, np.float64)[::step, ::step] - vmin) / (vmax - vmin)
     return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
 
 
@@ -274,26 +275,77 @@ def _control_sentence(domain, k, if_stiff, if_control, se_stiff=None, se_control
 
 # -- figures -------------------------------------------------------------------------------------
 def _new_figure(width_in, height_in):
+    """A figure for a caller that places its own axes (``fig.subplots(..., gridspec_kw=...)``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     scale = min(1.0, _MAX_WIDTH_IN / width_in)  # wider than the page only costs bytes
-    fig = Figure(figsize=(width_in * scale, height_in * scale), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(width_in * scale, height_in * scale), dpi=_DPI)
     FigureCanvasAgg(fig)
     return fig
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cell:
+    """The room around one panel, in inches: its title above, tick labels left and below, and a
+    colour bar with its ticks and label to the right (``cbar``: 0 for none, or one per column)."""
+
+    left: float = 0.08
+    right: float = 0.08
+    top: float = 0.32
+    bottom: float = 0.08
+    cbar: float | tuple = 0.0
+
+
+def _grid_figure(nrows, ncols, panel, cell: _Cell, extra_right=0.0):
+    """A figure of ``nrows x ncols`` panels of ``panel`` = (width, height) inches each, every margin
+    fixed: ``(fig, axes, caxes)``, ``caxes`` the colour bars' axes (``None`` without).
+
+    Why not constrained layout: it measures every text by drawing the figure twice more before the
+    real draw, half of the report's drawing time, to find margins known here in advance (the
+    titles' and tick labels' font sizes are fixed). Panels narrow, their text does not, when the
+    figure would be wider than the page (``_MAX_WIDTH_IN``).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pw, ph = panel
+    cbars = cell.cbar if isinstance(cell.cbar, tuple) else (cell.cbar,) * ncols
+    fixed_w = ncols * (cell.left + cell.right) + sum(cbars) + extra_right
+    scale = min(1.0, max(_MAX_WIDTH_IN - fixed_w, 1.0) / (ncols * pw))
+    pw, ph = pw * scale, ph * scale
+    ch = cell.top + ph + cell.bottom
+    x0 = np.concatenate([[0.0], np.cumsum([cell.left + pw + cb + cell.right for cb in cbars])])
+    fw, fh = x0[-1] + extra_right, nrows * ch
+    fig = Figure(figsize=(fw, fh), dpi=_DPI)
+    FigureCanvasAgg(fig)
+    axes = np.empty((nrows, ncols), dtype=object)
+    caxes = np.empty((nrows, ncols), dtype=object) if any(cbars) else None
+    for r in range(nrows):
+        y = fh - r * ch - cell.top - ph
+        for c in range(ncols):
+            x = x0[c] + cell.left
+            axes[r, c] = fig.add_axes((x / fw, y / fh, pw / fw, ph / fh))
+            if cbars[c]:  # as colorbar(shrink=0.85) drew it: 85 % of the panel, 1/20 as wide
+                bh = 0.85 * ph
+                box = (x + pw + 0.1, y + (ph - bh) / 2, bh / 20, bh)
+                caxes[r, c] = fig.add_axes((box[0] / fw, box[1] / fh, box[2] / fw, box[3] / fh))
+    return fig, axes, caxes
 
 
 def _png_bytes(fig, dpi, max_bytes):
     from PIL import Image
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    # zlib level 3, not PIL's 6: half the encoding time (a third of a noisy report's figures), 0-15 %
+    # more bytes, and noisy images (the large ones) compress no better at 6 (session 45)
+    fig.savefig(buf, format="png", dpi=dpi, pil_kwargs={"compress_level": 3})
     data = buf.getvalue()
     if len(data) > max_bytes:
         # noisy radiographs compress badly as RGBA; 256 colours lose nothing a reader sees
         img = Image.open(io.BytesIO(data)).convert("RGB").quantize(256, method=Image.Quantize.FASTOCTREE)
         buf = io.BytesIO()
-        img.save(buf, format="PNG", optimize=True)
+        img.save(buf, format="PNG", compress_level=6)  # optimize=True (level 9) took 2-5x as long for 1-4 % fewer bytes
         data = min(data, buf.getvalue(), key=len)
     return data
 
@@ -308,8 +360,32 @@ def _save(fig, path: Path, max_bytes=MAX_PNG_BYTES) -> None:
         # the bytes of noisy images grow with the pixel count, i.e. with dpi squared
         dpi = max(30, int(dpi * 0.92 * math.sqrt(max_bytes / len(data))))
         data = _png_bytes(fig, dpi, max_bytes)
+    # no fig.clear(): it cost 0.1 s a figure to empty an object nothing refers to after this
     path.write_bytes(data)
-    fig.clear()
+
+
+def _imshow(ax, img, **kw):
+    """``ax.imshow(img, interpolation="nearest", **kw)`` of every ``step``-th pixel, ``step`` the
+    largest that keeps at least as many pixels as the panel has dots, over the whole field of view.
+
+    Why: nearest-neighbour resampling shows one pixel of each dot anyway; a 2240-pixel image drawn
+    2.5 inches wide cost 0.3 s a panel to colour-map and resample in full (session 45).
+    """
+    img = np.asarray(img)
+    step = _stride(ax, img.shape)
+    return ax.imshow(img[::step, ::step], extent=_extent(img.shape), interpolation="nearest", **kw)
+
+
+def _stride(ax, shape):
+    """The largest step through an image of ``shape`` that leaves ``ax`` no fewer pixels than dots."""
+    fig = ax.get_figure()
+    w_dots, h_dots = ax.get_position().size * fig.get_size_inches() * fig.dpi
+    return max(1, int(min(shape[1] / max(w_dots, 1.0), shape[0] / max(h_dots, 1.0))))
+
+
+def _extent(shape):
+    """imshow's extent of an image of ``shape``: pixel centres at their indices, strided or not."""
+    return (-0.5, shape[1] - 0.5, shape[0] - 0.5, -0.5)
 
 
 def _panel_size(shape, width=3.0):
@@ -343,21 +419,21 @@ def _fig_projections(images, results, fig_dir):
     n = len(steps)
     ncols = min(n, 4)
     nrows = -(-n // ncols)
-    w, h = _panel_size(steps.shape[1:])
-    fig = _new_figure(w * ncols + 1.0, (h + 0.5) * nrows)
-    axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+    # tick labels left and below each panel; the shared colour bar's ticks (10 pt) and label right
+    fig, axes, _ = _grid_figure(nrows, ncols, _panel_size(steps.shape[1:]), _Cell(0.42, 0.1, 0.3, 0.28), 0.95)
+    axes = axes.ravel()
     vmin, vmax = _limits(steps, 0.5, 99.5)
     im = None
     for i, ax in enumerate(axes):
         if i >= n:
             ax.set_axis_off()
             continue
-        im = ax.imshow(steps[i], cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+        im = _imshow(ax, steps[i], cmap="gray", vmin=vmin, vmax=vmax)
         _draw_rois(ax, results.rois, legend=(i == 0))
         label = _ratio_label(results.ratios[i])
         ax.set_title(f"step {results.steps[i]}" + (f" \u2014 {label}" if label else ""), fontsize=9)
         _style_image_axes(ax)
-    cb = fig.colorbar(im, ax=list(axes[:n]), shrink=0.85)
+    cb = fig.colorbar(im, cax=_shared_cax(fig, axes[:n]))
     cb.set_label("line integral \u2212ln(I/I\u2080)", fontsize=8)
     name = "projections.png"
     _save(fig, fig_dir / name)
@@ -369,6 +445,15 @@ def _fig_projections(images, results, fig_dir):
         f" ({results.pixel_size_mm:g} mm per pixel). After the paper's Figs. 4\u20135."
     )
     return name, caption
+
+
+def _shared_cax(fig, axes):
+    """A colour bar's axes right of ``axes``, 85 % of their height, as colorbar(shrink=0.85) drew it."""
+    x1 = max(ax.get_position().x1 for ax in axes)
+    y0, y1 = min(ax.get_position().y0 for ax in axes), max(ax.get_position().y1 for ax in axes)
+    fw, fh = fig.get_size_inches()
+    h = 0.85 * (y1 - y0)
+    return fig.add_axes((x1 + 0.15 / fw, y0 + 0.075 * (y1 - y0), h * fh / 20 / fw, h))
 
 
 def _profile_rows(shape, row):
@@ -390,8 +475,9 @@ def _fig_profiles(images, results, fig_dir):
     centre, a, b = _profile_rows(steps.shape[1:], results.profiles_row)
     x = np.arange(steps.shape[2]) * results.pixel_size_mm
     domains = _in_order(images.enhanced)
-    fig = _new_figure(4.2 * (1 + len(domains)), 3.4)
-    axes = np.atleast_1d(fig.subplots(1, 1 + len(domains), squeeze=False)).ravel()
+    # y tick labels and unit left, x tick labels and label below, the title above
+    fig, axes, _ = _grid_figure(1, 1 + len(domains), (3.45, 2.6), _Cell(0.62, 0.12, 0.3, 0.5))
+    axes = axes.ravel()
     for j, img in enumerate(steps):
         rl = _ratio_label(results.ratios[j])
         axes[0].plot(x, _row_mean(img, a, b), lw=1.1, label=f"step {results.steps[j]}" + (f" ({rl})" if rl else ""))
@@ -438,22 +524,22 @@ _D_UNITS = {
 
 def _fig_difference(images, results, fig_dir):
     domains = _in_order(images.enhanced)
-    w, h = _panel_size(images.reference.shape, 3.4)
-    fig = _new_figure((w + 0.9) * len(domains), h + 0.6)
-    axes = np.atleast_1d(fig.subplots(1, len(domains), squeeze=False)).ravel()
-    for ax, dom in zip(axes, domains):
+    # no tick labels; a colour bar with ticks (7 pt) and its label right of each panel
+    fig, axes, caxes = _grid_figure(1, len(domains), _panel_size(images.reference.shape, 3.0), _Cell(cbar=1.05))
+    for ax, cax, dom in zip(axes.ravel(), caxes.ravel(), domains):
         d = np.asarray(images.enhanced[dom].difference, np.float64)
         v = _finite(d)
         mean = float(v.mean()) if v.size else 0.0
         half = float(np.percentile(np.abs(v - mean), 99)) if v.size else 1.0
         half = half if half > 0 else 1e-6
-        im = ax.imshow(d, cmap="RdBu_r", vmin=mean - half, vmax=mean + half, interpolation="nearest")
+        im = _imshow(ax, d, cmap="RdBu_r", vmin=mean - half, vmax=mean + half)
         _draw_rois(ax, results.rois, legend=(dom == domains[0]))
         ax.set_title(f"D = reference \u2212 registered ({dom})", fontsize=9)
         _style_image_axes(ax, ticks=False)
-        cb = fig.colorbar(im, ax=ax, shrink=0.85)
+        cb = fig.colorbar(im, cax=cax)
         cb.set_label(f"D, {_D_UNITS.get(getattr(dom, 'value', dom), 'image units')}", fontsize=8)
         cb.ax.tick_params(labelsize=7)
+        cb.ax.yaxis.get_offset_text().set_fontsize(7)  # "1e-5-1.61e-1" of a near-constant D, over the panel at 10 pt
     name = "difference.png"
     _save(fig, fig_dir / name)
     caption = (
@@ -469,16 +555,17 @@ def _fig_difference(images, results, fig_dir):
 def _fig_rois(images, results, fig_dir):
     domains = _in_order(images.enhanced)
     ncols = 1 + len(results.ks)
-    w, h = _panel_size(images.reference.shape, 2.8)
-    fig = _new_figure((w + 0.2) * ncols, (h + 0.6) * len(domains))
-    axes = fig.subplots(len(domains), ncols, squeeze=False)
+    # two-line titles (8 pt) above, nothing else around the panels
+    fig, axes, _ = _grid_figure(
+        len(domains), ncols, _panel_size(images.reference.shape, 2.8), _Cell(0.04, 0.04, 0.42, 0.04)
+    )
     for row, dom in enumerate(domains):
         e, meas = images.enhanced[dom], results.domains[dom]
         panels = [("reference", e.reference, meas.contrast_reference, None)]
         panels += [(_k_label(k), img, meas.at(k).contrast, meas.at(k).improvement_factor) for k, img in e.images]
         for ax, (label, img, contrast, factor) in zip(axes[row], panels):
             vmin, vmax = _limits(img, 1, 99)
-            ax.imshow(img, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+            _imshow(ax, img, cmap="gray", vmin=vmin, vmax=vmax)
             _draw_rois(ax, results.rois)
             title = f"{dom}: {label}\nC = {_fmt(contrast, '.4g')}"
             if factor is not None:
@@ -498,15 +585,15 @@ def _fig_rois(images, results, fig_dir):
     return name, caption
 
 
-def _overlay(fixed, moving):
-    f, m = _normalise(fixed), _normalise(moving)
+def _overlay(fixed, moving, step=1):
+    f, m = _normalise(fixed, step=step), _normalise(moving, step=step)
     return np.dstack([f, m, f])  # reference magenta (R + B), moving green: grey where they agree
 
 
-def _panel_displacement(fig, ax, disp):
+def _panel_displacement(fig, ax, cax, disp):
     d = np.asarray(disp, np.float64)
     mag = np.hypot(d[0], d[1])
-    im = ax.imshow(mag, cmap="viridis", interpolation="nearest")
+    im = _imshow(ax, mag, cmap="viridis")
     step = max(1, max(mag.shape) // 14)
     rr, cc = np.mgrid[step // 2 : mag.shape[0] : step, step // 2 : mag.shape[1] : step]
     # pull field: the registered pixel at x came from x + d(x), so the arrow points there; no
@@ -515,31 +602,31 @@ def _panel_displacement(fig, ax, disp):
     if np.any(np.isfinite(u) & np.isfinite(v) & ((u != 0) | (v != 0))):
         ax.quiver(cc, rr, u, v, color="white", angles="xy", scale_units="xy", scale=None, width=0.004)
     ax.set_title(f"|d| (px), max {_fmt(_finite(mag).max() if _finite(mag).size else None, '.3g')}", fontsize=9)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb = fig.colorbar(im, cax=cax)
     cb.set_label("|d| (px)", fontsize=8)
     cb.ax.tick_params(labelsize=7)
 
 
-def _panel_det_j(fig, ax, det):
+def _panel_det_j(fig, ax, cax, det):
     jd = np.asarray(det, np.float64)
     v = _finite(jd)
     half = max(float(np.percentile(np.abs(v - 1.0), 99.5)) if v.size else 0.0, 1e-3)
-    im = ax.imshow(jd, cmap="RdBu_r", vmin=1 - half, vmax=1 + half, interpolation="nearest")
+    im = _imshow(ax, jd, cmap="RdBu_r", vmin=1 - half, vmax=1 + half)
     if v.size and v.min() <= 0:
         ax.contour(jd, levels=[0.0], colors="black", linewidths=0.8)
     folds = int((v <= 0).sum()) if v.size else 0
     ax.set_title(f"det J (min {_fmt(v.min() if v.size else None, '.3g')}, {folds} folds)", fontsize=9)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb = fig.colorbar(im, cax=cax)
     cb.set_label("det J", fontsize=8)
     cb.ax.tick_params(labelsize=7)
 
 
-def _panel_epe(fig, ax, epe):
+def _panel_epe(fig, ax, cax, epe):
     e = np.asarray(epe, np.float64)
     v = _finite(e)
-    im = ax.imshow(e, cmap="magma", vmin=0, vmax=_limits(e, 0, 99)[1], interpolation="nearest")
+    im = _imshow(ax, e, cmap="magma", vmin=0, vmax=_limits(e, 0, 99)[1])
     ax.set_title(f"EPE (px): median {_fmt(np.median(v) if v.size else None, '.3f')}", fontsize=9)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb = fig.colorbar(im, cax=cax)
     cb.set_label("EPE (px)", fontsize=8)
     cb.ax.tick_params(labelsize=7)
 
@@ -561,18 +648,20 @@ _REGISTRATION_CAPTIONS = {
 def _fig_registration(images, results, fig_dir):
     q = results.pair(results.main_pair).quality
     panels = ["before", "after", "disp", "det"] + (["epe"] if images.epe_map is not None else [])
-    w, h = _panel_size(images.reference.shape, 3.0)
-    fig = _new_figure((w + 0.6) * len(panels), h + 0.7)
-    axes = np.atleast_1d(fig.subplots(1, len(panels), squeeze=False)).ravel()
+    # the overlays take no colour bar, the maps one each with its ticks and label
+    cell = _Cell(cbar=(0.0, 0.0) + (0.85,) * (len(panels) - 2))
+    fig, axes, caxes = _grid_figure(1, len(panels), _panel_size(images.reference.shape, 2.5), cell)
+    axes, caxes = axes.ravel(), caxes.ravel()
     for ax in axes:
         _style_image_axes(ax, ticks=False)
     for ax, (when, img) in zip(axes, (("before", images.moving), ("after", images.registered))):
-        ax.imshow(_overlay(images.reference, img), interpolation="nearest")
+        step = _stride(ax, images.reference.shape)  # the RGB of every pixel was 3 float64s a pixel
+        ax.imshow(_overlay(images.reference, img, step), extent=_extent(img.shape), interpolation="nearest")
         ax.set_title(f"{when}: NCC {_fmt(q.get(f'ncc_{when}'), '.3f')}", fontsize=9)
-    _panel_displacement(fig, axes[2], images.displacement)
-    _panel_det_j(fig, axes[3], images.det_j)
+    _panel_displacement(fig, axes[2], caxes[2], images.displacement)
+    _panel_det_j(fig, axes[3], caxes[3], images.det_j)
     if images.epe_map is not None:
-        _panel_epe(fig, axes[4], images.epe_map)
+        _panel_epe(fig, axes[4], caxes[4], images.epe_map)
     name = "registration.png"
     _save(fig, fig_dir / name)
     captions = ["overlay", "disp", "det"] + (["epe"] if images.epe_map is not None else [])

@@ -547,3 +547,18 @@ def test_a_pairs_quality_still_serialises_and_copies_as_the_dict_it_was(tmp_path
         with pytest.raises(TypeError, match="read-only"):
             change()
     assert dict(q) == plain
+
+
+def test_large_images_are_drawn_strided_over_the_whole_field():
+    """A panel shows every step-th pixel, as many as it has dots or more, over the full extent."""
+    fig = R._new_figure(2, 2)
+    ax = fig.add_axes((0, 0, 1, 1))  # 200 x 200 dots at 100 dpi
+    img = np.arange(1000 * 900, dtype=np.float64).reshape(1000, 900)
+    im = R._imshow(ax, img, cmap="gray")
+    shown = im.get_array()
+    step = 900 // 200  # the largest stride keeping >= 200 columns and rows
+    np.testing.assert_array_equal(shown, img[::step, ::step])
+    assert min(shown.shape) >= 200
+    assert im.get_extent() == [-0.5, 899.5, 999.5, -0.5]  # the field of view, not the strided one
+    small = R._imshow(ax, img[:50, :60])
+    np.testing.assert_array_equal(small.get_array(), img[:50, :60])
