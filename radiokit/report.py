@@ -274,17 +274,6 @@ def _control_sentence(domain, k, if_stiff, if_control, se_stiff=None, se_control
 
 
 # -- figures -------------------------------------------------------------------------------------
-def _new_figure(width_in, height_in):
-    """A figure for a caller that places its own axes (``fig.subplots(..., gridspec_kw=...)``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    scale = min(1.0, _MAX_WIDTH_IN / width_in)  # wider than the page only costs bytes
-    fig = Figure(figsize=(width_in * scale, height_in * scale), dpi=_DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
 @dataclasses.dataclass(frozen=True)
 class _Cell:
     """The room around one panel, in inches: its title above, tick labels left and below, and a

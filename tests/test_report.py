@@ -311,8 +311,8 @@ def test_every_k_is_reported(full_report):
 def test_noisy_figures_are_kept_under_the_size_limit(tmp_path):
     """Noise compresses badly: the PNG is palette-quantised, then drawn smaller, until it fits."""
     rng = np.random.default_rng(0)
-    fig = R._new_figure(8, 4)
-    for ax in fig.subplots(1, 2):
+    fig, axes, _ = R._grid_figure(1, 2, (3.8, 3.6), R._Cell())
+    for ax in axes.ravel():
         ax.imshow(rng.standard_normal((300, 300)), cmap="viridis")
     R._save(fig, tmp_path / "noise.png", max_bytes=60_000)
     data = (tmp_path / "noise.png").read_bytes()
@@ -551,8 +551,8 @@ def test_a_pairs_quality_still_serialises_and_copies_as_the_dict_it_was(tmp_path
 
 def test_large_images_are_drawn_strided_over_the_whole_field():
     """A panel shows every step-th pixel, as many as it has dots or more, over the full extent."""
-    fig = R._new_figure(2, 2)
-    ax = fig.add_axes((0, 0, 1, 1))  # 200 x 200 dots at 100 dpi
+    fig, axes, _ = R._grid_figure(1, 1, (2.0, 2.0), R._Cell(0, 0, 0, 0))
+    ax = axes[0, 0]  # the whole figure: 200 x 200 dots at 100 dpi
     img = np.arange(1000 * 900, dtype=np.float64).reshape(1000, 900)
     im = R._imshow(ax, img, cmap="gray")
     shown = im.get_array()
