@@ -79,7 +79,9 @@ between the two images' silhouettes (``radiokit.register._global``: centroid and
 moments, refined on the images) under every level's lattices: a compressed phantom's slab moves tens of pixels at its
 ends with nothing inside to see it by, and the lattices, which the bending energy never charges
 for an affine field, then refine around it. Dropped, and said so in the result's
-``options["initial"]``, when the body is not wholly inside the frame or the silhouettes disagree.
+``options["initial"]``, when the body is not wholly inside the frame or the silhouettes disagree;
+a body cut by the frame starts instead from the affine map refined on the images from no motion
+(``_global.frame_cut_affine``) where that beats no motion by more than the noise could.
 
 Optimisation: L-BFGS (scipy) per pyramid level, coarse to fine (images halved by area averaging
 until the smaller side is below ``min_size``), each level adding its own lattice on top of the
@@ -1754,10 +1756,17 @@ def _initial(fixed, moving, o):
     """``(affine or None, note)``: the global first guess asked for by ``init``."""
     if o["init"] != "silhouette":
         return None, "none"
-    from radiokit.register._global import silhouette_affine
+    from radiokit.register._global import CUT, frame_cut_affine, silhouette_affine
 
     affine, why = silhouette_affine(fixed, moving)
-    return affine, ("silhouette: " + affine.describe()) if affine is not None else f"none (silhouette not used: {why})"
+    if affine is not None:
+        return affine, "silhouette: " + affine.describe()
+    if CUT in why:  # only a cut body's moments are refused: the images may still show its motion
+        affine, cut_why = frame_cut_affine(fixed, moving)
+        if affine is not None:
+            return affine, f"from no motion ({why}): {affine.describe()}"
+        why = f"{why}; {cut_why}"
+    return None, f"none (silhouette not used: {why})"
 
 
 def _converged(res, move, converge_px):
