@@ -2707,6 +2707,8 @@ class L8121:
             elif callable(progress):
                 progress(elapsed, state)
             if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
+                if not seen_running and not self.warmup_joined:
+                    self._warm_up_unseen(elapsed)
                 return
             if state == SourceState.XRAY_ON:
                 if not seen_running:  # the start command began an exposure, not a warm-up
@@ -2749,6 +2751,22 @@ class L8121:
             why = f"{ran_on} and the controller does not report it done"
             raise self._switched_off(DeviceError, why, state, None, ask_code=False)
         logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
+
+    def _warm_up_unseen(self, elapsed: float) -> None:
+        """The warm-up reads done (standby, A ``SWE 0`` / B ``DAG ... END``) but no poll read it
+        running: shorter than a poll, or a unit whose ``STS`` never says warming up. Nothing read
+        says the start command's beam is over -- L8121.md ties no state to its echo, and a state
+        that follows late may yet start it (after A's forced ``WUP`` from standby, standby and done
+        are also what a unit reads until it begins) -- so the tube is switched off (``XOF``, "always accepted"), confirmed by ``STS``,
+        before the warm-up is called done and the tube off. That ``XOF`` is also what disarms
+        the guardian's watchdog, which after a start command takes a standby as off only once
+        the state has read on or an ``XOF`` passed (left by review s44rr2: its watchdog sent an
+        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told."""
+        state, failed = self._off_for_fault()
+        if failed is not None:
+            why = f"the warm-up read done after {elapsed:.1f} s without ever reading it running"
+            raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
+        logger.info("%s: warm-up read done, never running: switched off to be sure (%s)", self.port, state.name)
 
     def _warm_up_pending(self) -> bool:
         """Whether a warm-up whose state still reads "needed" is under way all the same: dialect A's

@@ -3452,6 +3452,36 @@ def test_a_standby_read_while_xon_comes_on_keeps_the_guardians_watchdog_armed(di
     assert not watch.may_be_on
 
 
+def test_a_warm_up_never_read_running_ends_switched_off_and_disarms_the_guardians_watch(dialect):
+    """Left by review s44rr2: a warm-up shorter than one poll (or a unit whose STS never says
+    warming up) read standby and done right after its start command. Nothing read says that
+    command's beam is over -- a state that follows the echo late may yet start it -- so the driver
+    called the tube off on no evidence, and the guardian's watch, which disarms after WUP/XON only
+    once the state read on or an XOF passed, stayed armed: its watchdog later sent an XOF with a
+    warning. Such a warm-up now ends with XOF, confirmed by STS; the guardian's watch, fed the
+    exchanges the driver made, ends disarmed."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    model = L8121Model(dialect=dialect, warmup_s=0, ramp_s=0)  # done before the first poll
+    with PtyServer(model) as server:
+        src = driver(server, dialect)
+        src.connect()
+        src.warm_up(progress=False)
+        assert not model.xray_on and not src.may_be_on
+        assert src.warmup_state() == WarmupState.DONE  # the XOF undid nothing: the warm-up counts
+        src.close()
+    commands = model.commands
+    start = len(commands) - commands[::-1].index("WUP" if dialect == "A" else "XON")
+    assert "XOF" in commands[start:], commands  # switched off after the start command
+    watch = _Watch(SimpleNamespace(dialect=dialect))
+    for exchange in model.log:  # as the guardian's _serve passes each request on
+        watch.sent(exchange.command)
+        watch.replied(exchange.command, exchange.reply)
+    assert not watch.may_be_on and not watch.starting
+
+
 def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     """The guardian's link reconnected (its check's count moved) while X-rays may have been on:
     the STS that later reads off is the unit's now at the port, known only by its model. The
