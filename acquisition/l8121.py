@@ -2802,8 +2802,8 @@ class L8121:
         standby with the warm-up done (A: ``STS 2`` and ``SWE 0``; B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
         and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
         B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; the
-        interlock again and the controller's error code (``SER``: anything but 0 refuses, nothing
-        reset); ``XON``; poll every ``poll_s`` until the measured values are within
+        interlock again, the controller's error code (``SER``: anything but 0 refuses, nothing
+        reset) and (B) ``DAG`` still ``END``; ``XON``; poll every ``poll_s`` until the measured values are within
         ``kv_tolerance`` / ``ua_tolerance`` of the set ones (the state may still read standby for
         ``xon_start_s`` after the echo, the interlock watched; past it, "X-rays did not come on").
         Any failure or interruption after ``XON`` switches off before the exception propagates,
@@ -2840,6 +2840,7 @@ class L8121:
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
             self._require_no_controller_error("X-rays not switched on")  # last too: no fault standing
+            self._require_warm_up_still_done()
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
             if self.before_xon is not None:
                 self.before_xon(kv_i, ua_i)
@@ -2892,6 +2893,18 @@ class L8121:
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
         self._require_remote("X-rays not switched on")
+
+    def _require_warm_up_still_done(self) -> None:
+        """B: ``DAG`` still ``END``, read last before ``XON``. B's ``XON`` starts a warm-up when
+        one is due (L8121.md), and :meth:`_require_ready`'s ``DAG`` came before the settings and
+        their read-back (~0.7 s, ten exchanges, at the default spacing): the 8-hour rule falling
+        due meanwhile turned the exposure's ``XON`` into a warm-up at the exposure's settings.
+        A's ``XON`` is refused unless standby: it cannot start a warm-up."""
+        if self.dialect is DIALECT_B and not self._read("warmup").done:
+            raise DeviceError(
+                f"{self.port}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
+                "decided it while the settings were sent (call warm_up())"
+            )
 
     def _require_remote(self, what: str) -> None:
         """B: the operate switch on REMOTE (``SRL``) before anything that leads to an ``XON``

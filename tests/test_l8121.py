@@ -1139,11 +1139,27 @@ def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration(
         SourceConfig(standby_needs_warmup_done="no")
 
 
-def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
-    """The controller decides a warm-up is due between the driver's DAG and its XON: the XON
-    meant as an exposure starts AGING; the driver switches off at its first poll."""
+def test_b_a_warm_up_that_falls_due_while_the_settings_are_sent_stops_before_xon():
+    """B's XON starts a warm-up when one is due (L8121.md), and the only DAG was read before the
+    settings and their read-back: ~0.7 s and ten exchanges before XON (s44), so the 8-hour rule
+    falling due meanwhile turned the exposure's XON into a warm-up at the exposure's settings
+    (switched off at the first poll: safe, but the run failed). DAG is read again last before
+    XON: refused, no X-ray command sent."""
     model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
     model.inject_after("PCU", model.require_warm_up)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(DeviceError, match=r"X-rays not switched on: warm-up needed, as DAG now says \(YET\)"):
+            src.on(60, 250)
+        assert "XON" not in model.commands and not model.xray_on
+        assert model.commands[-1] == "DAG"  # the last exchange before XON would have been
+
+
+def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
+    """The controller decides a warm-up is due between the driver's last DAG and its XON (one
+    exchange apart): the XON meant as an exposure starts AGING; the driver switches off at its
+    first poll."""
+    model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
+    model.inject_after("SER", lambda: model.inject_after("DAG", model.require_warm_up))
     with PtyServer(model) as server, driver(server, "B") as src:
         with pytest.raises(
             SourceFault,
