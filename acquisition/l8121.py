@@ -1223,6 +1223,9 @@ def _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, 
         try:
             found = _probe_at(link, baud, exchange, notes, seen)
             missed = exchange[-1].reply is None
+            dsr = missed and getattr(link, "dsr_low", str)()  # why a port may be silent (a pty: "")
+            if dsr and dsr not in notes:
+                notes.append(dsr)
         except BaseException as exc:
             if not isinstance(exc, Exception):  # an interrupt: say what is known of the tube
                 # (a transport that does not count its writes is taken to have sent something)

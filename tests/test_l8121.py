@@ -339,6 +339,39 @@ def test_transport_discards_a_late_reply():
         assert lnk.query("SIN") == "SIN 0"
 
 
+@pytest.mark.parametrize("dsr", [False, True, None], ids=["low", "high", "unknown"])
+def test_a_silent_port_whose_dsr_reads_low_says_so(dsr, monkeypatch):
+    """DSR low is what the L8121-02's driver takes for a failed link (L8121.md, dialect B), but
+    the notes give no line state for the L8121-01, and a three-wire cable reads DSR low too: not
+    a refusal at open, but the operator's one line about a silent controller names it. A pty has
+    no modem lines (pyserial's DSR raises OSError there: ``unknown``); ``low`` and ``high`` fake
+    the DSR reading alone -- the only way to drive it here -- on a real, silent pty."""
+    import pty
+
+    import serial as pyserial
+
+    master, slave = pty.openpty()
+    name = os.ttyname(slave)
+    try:
+        if dsr is not None:
+            monkeypatch.setattr(pyserial.Serial, "dsr", property(lambda self: dsr))
+        with SerialTransport(name, timeout_s=0.1, retries=0) as lnk:
+            with pytest.raises(DeviceError) as err:
+                lnk.query("STS")
+    finally:
+        os.close(master), os.close(slave)
+    said = str(err.value)
+    assert "\n" not in said and said.startswith(f"{name}: no reply to STS within 0.1 s"), said
+    assert ("DSR low" in said) == (dsr is False), said
+    # the probe (dialect "auto", the default) says it once in its one line, whatever the rates tried
+    master, slave = pty.openpty()
+    try:
+        summary = probe(os.ttyname(slave), baudrates=(9600, 38400), timeout_s=0.1).summary()
+    finally:
+        os.close(master), os.close(slave)
+    assert "\n" not in summary and summary.count("DSR low") == (dsr is False), summary
+
+
 class _StalledLink:
     """A port through which this process is stalled across the reply's deadline. A fake -- the
     only way to cause the fault deterministically: a loaded machine, a long garbage collection or
