@@ -611,7 +611,7 @@ def _source_said_last(args) -> int:
         try:
             args.whole = unconnected.validate(args.kv, args.ua, exposure=args.action == "on")
         except ValueError as exc:
-            said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
+            said = getattr(exc, "detail", str(exc))  # (SettingRefused: the refusal without its speaker)
             print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
             return 2
     from acquisition.errors import PortBusy

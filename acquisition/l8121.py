@@ -114,6 +114,7 @@ __all__ = [
     "Command",
     "Choice",
     "SwitchedOff",
+    "SettingRefused",
     "OffOutcome",
 ]
 
@@ -123,6 +124,17 @@ logger = logging.getLogger(__name__)
 #: that ends by saying that failure itself, right above the X-RAYS warning, keeps these records off
 #: the terminal (each layer that tried logged its own copy, and the operator read it three times).
 OFF_FAILURE = "tube_off_failure"
+
+
+class SettingRefused(ValueError):
+    """A value or a configuration the driver refuses before anything is sent: ``str()`` names who
+    refuses (``of``: "L8121" for a voltage or current, "L8121 configuration" for a setting), and
+    ``detail`` is the rest, for a caller that says it in its own words (the command line, a
+    protocol's ``[source]``) instead of cutting the speaker off the text."""
+
+    def __init__(self, detail: str, *, of: str = "L8121 configuration"):
+        super().__init__(f"{of}: {detail}")
+        self.detail = detail
 
 
 class SwitchedOff(DeviceError):
@@ -282,7 +294,7 @@ class SourceConfig:
     >>> SourceConfig(kv_max=1000)
     Traceback (most recent call last):
     ...
-    ValueError: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
+    acquisition.l8121.SettingRefused: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
     """
 
     dialect: str = "A"
@@ -345,19 +357,17 @@ class SourceConfig:
         dialect = str(self.dialect)
         self.dialect = dialect.upper() if dialect.upper() in ("A", "B") else dialect.lower()
         if self.dialect not in ("A", "B", "auto"):
-            raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
+            raise SettingRefused(f"dialect {dialect!r}: expected 'A', 'B' or 'auto'")
         self.focus_modes = _focus_modes(self.focus_modes)
         codes = self.allowed_error_codes
         if not isinstance(codes, (list, tuple)) or not all(type(c) is int and c > 0 for c in codes):
-            raise ValueError(
-                f"L8121 configuration: allowed_error_codes {codes!r}: expected a list of error codes above 0"
-            )
+            raise SettingRefused(f"allowed_error_codes {codes!r}: expected a list of error codes above 0")
         self.allowed_error_codes = tuple(codes)
         if not isinstance(self.error_query, bool):
-            raise ValueError(f"L8121 configuration: error_query {self.error_query!r}: expected true or false")
+            raise SettingRefused(f"error_query {self.error_query!r}: expected true or false")
         self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
         if not self.probe_baudrates:
-            raise ValueError("L8121 configuration: probe_baudrates is empty")
+            raise SettingRefused("probe_baudrates is empty")
         if self.baudrate is not None:
             self.baudrate = _baud(self.baudrate, "baudrate")
         for name in (
@@ -380,24 +390,19 @@ class SourceConfig:
             if getattr(self, name) is not None:
                 setattr(self, name, _finite(getattr(self, name), name))
         if self.voltage_scale == 0:
-            raise ValueError("L8121 configuration: voltage_scale must be > 0")
+            raise SettingRefused("voltage_scale must be > 0")
         self._check_beam_drop()
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
-            raise ValueError(
-                f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
-            )
+            raise SettingRefused(f"empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}")
         self._check_timeouts()
         if not isinstance(self.standby_needs_warmup_done, bool):
-            raise ValueError(
-                "L8121 configuration: standby_needs_warmup_done must be true or false, "
-                f"got {self.standby_needs_warmup_done!r}"
+            raise SettingRefused(
+                f"standby_needs_warmup_done must be true or false, got {self.standby_needs_warmup_done!r}"
             )
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
-            raise ValueError(
-                f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
-            )
+            raise SettingRefused(f"off_attempts must be a whole number >= 1, got {self.off_attempts!r}")
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
         self._check_given_tolerances()
@@ -419,8 +424,8 @@ class SourceConfig:
         """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
         nothing with STS still on passed every poll); 1 or more called every beam dropped."""
         if not 0 < self.beam_drop_fraction < 1:
-            raise ValueError(
-                f"L8121 configuration: beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
+            raise SettingRefused(
+                f"beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
                 "above 0 and below 1 (of the set current or voltage, below which the beam counts as dropped)"
             )
 
@@ -437,11 +442,11 @@ class SourceConfig:
             "ready_timeout_s",
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
-                raise ValueError(f"L8121 configuration: {name} must be > 0")
+                raise SettingRefused(f"{name} must be > 0")
         for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
             if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
-                raise ValueError(
-                    f"L8121 configuration: {name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
+                raise SettingRefused(
+                    f"{name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
 
@@ -454,8 +459,8 @@ class SourceConfig:
             ("watts_max", self.watts_max, r.watts_max, "W", True),
         ):
             if (value > rating) if above else (value < rating):
-                raise ValueError(
-                    f"L8121 configuration: {name} = {value:g} {unit} "
+                raise SettingRefused(
+                    f"{name} = {value:g} {unit} "
                     f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
                     f"a configuration may only tighten the ratings"
                 )
@@ -475,24 +480,24 @@ class SourceConfig:
         """
         for name, value, unit in (("voltage_kv", voltage_kv, "kV"), ("current_ua", current_ua, "µA")):
             if not is_number(value):
-                raise ValueError(f"L8121: {name} must be a number of {unit}, got {value!r}")
+                raise SettingRefused(f"{name} must be a number of {unit}, got {value!r}", of="L8121")
             if not math.isfinite(value):
-                raise ValueError(f"L8121: {name} must be finite, got {value!r} {unit}")
+                raise SettingRefused(f"{name} must be finite, got {value!r} {unit}", of="L8121")
         r = RATINGS
         kv_lo, kv_hi = max(self.kv_min, r.kv_min), min(self.kv_max, r.kv_max)
         ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
         if not kv_lo <= voltage_kv <= kv_hi:
-            raise ValueError(
-                f"L8121: voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV"
+            raise SettingRefused(
+                f"voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV", of="L8121"
             )
         if not ua_lo <= current_ua <= ua_hi:
-            raise ValueError(
-                f"L8121: current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA"
+            raise SettingRefused(
+                f"current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA", of="L8121"
             )
         watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
         if watts > w_hi:
-            raise ValueError(
-                f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W"
+            raise SettingRefused(
+                f"{voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W", of="L8121"
             )
 
     def check_tolerances(self, set_kv: float | None, set_ua: float | None, keys=("kv_tolerance", "ua_tolerance")):
@@ -510,8 +515,8 @@ class SourceConfig:
                 continue
             tol = self._tolerance_at(key, spec, set_value)
             if tol > room * abs(set_value):
-                raise ValueError(
-                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                raise SettingRefused(
+                    f"{key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
                     f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
                     f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
@@ -550,7 +555,7 @@ class SourceConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(mapping) - known)
         if unknown:
-            raise ValueError(f"L8121 configuration: unknown key(s) {unknown}; known: {sorted(known)}")
+            raise SettingRefused(f"unknown key(s) {unknown}; known: {sorted(known)}")
         return cls(**mapping)
 
     @classmethod
@@ -576,7 +581,7 @@ class SourceConfig:
 
 def _finite(value, name: str) -> float:
     if not is_number(value) or not math.isfinite(value) or value < 0:
-        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
+        raise SettingRefused(f"{name} must be a finite number >= 0, got {value!r}")
     return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
@@ -588,7 +593,7 @@ BAUDRATES = (9600, 38400, 115200)
 
 def _baud(value, name: str) -> int:
     if not is_integer(value) or value <= 0:
-        raise ValueError(f"L8121 configuration: {name} = {value!r}: expected a whole number of baud > 0")
+        raise SettingRefused(f"{name} = {value!r}: expected a whole number of baud > 0")
     if value not in BAUDRATES:
         logger.warning(
             "L8121 configuration: %s = %s is not a rate L8121.md lists (%s): used as configured",
@@ -603,10 +608,10 @@ def _focus_modes(modes) -> tuple:
     """``focus_modes`` as a tuple of Python ints: whole numbers only, each (int() took "1" and 1.5
     as mode 1, and a string "0123" as four modes)."""
     if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
-        raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
+        raise SettingRefused(f"focus_modes must be a list of whole numbers >= 0, got {modes!r}")
     modes = list(modes)  # read twice below: a generator would be empty the second time
     if not all(is_integer(m) and m >= 0 for m in modes):
-        raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {modes!r}")
+        raise SettingRefused(f"focus_modes must hold whole numbers >= 0, got {modes!r}")
     return tuple(int(m) for m in modes)  # a numpy integer is not TOML's
 
 
@@ -632,10 +637,10 @@ def _tolerance(spec: float | str, set_value: float, name: str) -> float:
     if isinstance(spec, str):
         m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?|\.[0-9]+)\s*%\s*", spec)  # "1.2.3%" was float()'s traceback
         if not m:
-            raise ValueError(f"L8121 configuration: {name} {spec!r} is neither a number nor a percentage like '2%'")
+            raise SettingRefused(f"{name} {spec!r} is neither a number nor a percentage like '2%'")
         return abs(set_value) * float(m.group(1)) / 100
     if not is_number(spec) or not 0 <= spec < math.inf:  # inf: any beam, even none, counts as stable
-        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {spec!r}")
+        raise SettingRefused(f"{name} must be a finite number >= 0, got {spec!r}")
     return float(spec)
 
 
@@ -1557,7 +1562,7 @@ class L8121:
         and :class:`SourceConfig` keys (``dialect``, ``baudrate``, limits, ...)."""
         table = dict(source) if isinstance(source, Mapping) else _toml_section(source, section)
         if "url" not in table:
-            raise ValueError(f"L8121 configuration: no 'url' in [{section}]")
+            raise SettingRefused(f"no 'url' in [{section}]")
         url = table.pop("url")
         return cls(url, connect=connect, config=SourceConfig.from_dict(table))
 

@@ -273,6 +273,30 @@ def test_source_values_out_of_range_are_refused_before_the_port_is_opened(capsys
     assert err[0].endswith("; nothing was sent"), err
 
 
+def test_a_refused_value_is_said_from_the_refusals_field_not_by_cutting_its_speaker(capsys, monkeypatch):
+    """The command line and a protocol's ``[source]`` say the driver's refusal of a value in their
+    own words: they read ``SettingRefused.detail``, where they cut "L8121: " or "L8121
+    configuration: " off its text (a speaker worded otherwise came through whole, doubled in the
+    line). The refusal is faked with another speaker; its detail is all either line says of it."""
+    from acquisition.l8121 import SettingRefused, SourceConfig
+    from acquisition.protocols.compression_series import ProtocolError, SourceSettings, _check_source
+    from radiokit.cli import main
+
+    detail = "voltage_kv = 60 kV is outside this unit's range"
+
+    def refuse(self, voltage_kv, current_ua):
+        raise SettingRefused(detail, of="L8121-01 (unit 2)")
+
+    monkeypatch.setattr(SourceConfig, "check_exposure", refuse)
+    code = main(["acquire", "source", "on", "--port", "/dev/null/none", "--kv", "60", "--ua", "250", "--for", "1"])
+    assert code == 2 and capsys.readouterr().err.splitlines() == [
+        f"error: --kv 60 --ua 250: {detail}; nothing was sent"
+    ]
+    with pytest.raises(ProtocolError) as err:
+        _check_source(SourceSettings())
+    assert str(err.value) == f"[source] {detail}"
+
+
 # -- `source on --for SECONDS`: the beam held, then switched off ---------------------------------
 
 HOLD = ("--kv", "60", "--ua", "250")
