@@ -2567,8 +2567,9 @@ class L8121:
         sends ``WUP``; dialect B sends ``XON`` only while ``DAG`` says ``YET`` (an ``XON`` with the
         warm-up done would be an exposure), and switches off if the controller answers it with
         X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
-        standby is switched off (confirmed) and counts as done if the controller reports it done.
-        It waits first for the controller's power-on checks (:meth:`settled_status`).
+        standby is switched off (confirmed) and counts as done if the controller reports it done;
+        one read done but never read running (shorter than a poll, or a unit whose ``STS`` never
+        says so) is switched off too, confirmed, before it is called done. It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
