@@ -611,7 +611,7 @@ def _source_said_last(args) -> int:
         try:
             args.whole = unconnected.validate(args.kv, args.ua, exposure=args.action == "on")
         except ValueError as exc:
-            said = str(exc).removeprefix("L8121: ").removeprefix("L8121 configuration: ")
+            said = getattr(exc, "detail", str(exc))  # (SettingRefused: the refusal without its speaker)
             print(f"error: --kv {args.kv:g} --ua {args.ua:g}: {said}; nothing was sent", file=sys.stderr)
             return 2
     from acquisition.errors import PortBusy
@@ -1075,13 +1075,16 @@ def _hold_beam(src, args, reading) -> None:
     if not args.quiet and sys.stderr.isatty():
         from radiokit.progress import tqdm
 
-        bar = tqdm(total=round(args.hold), desc=f"X-rays on ({args.port})", unit="s", leave=False)
+        # at least one step: a hold under half a second had a bar of 0 s, which tqdm drew as a
+        # bare "0s" that never moved (no countdown)
+        bar = tqdm(total=max(1, round(args.hold)), desc=f"X-rays on ({args.port})", unit="s", leave=False)
     try:
         while (left := end - time.monotonic()) > 0:
             time.sleep(min(SourceSettings.poll_s, left))
             src.check()
-            if bar is not None:
-                bar.n = min(round(args.hold - max(end - time.monotonic(), 0.0)), bar.total)
+            if bar is not None:  # the time gone, on the bar's scale: full when the hold is over
+                gone = 1.0 - max(end - time.monotonic(), 0.0) / args.hold
+                bar.n = min(round(bar.total * gone), bar.total)
                 bar.refresh()
     finally:
         if bar is not None:

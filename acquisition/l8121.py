@@ -114,6 +114,7 @@ __all__ = [
     "Command",
     "Choice",
     "SwitchedOff",
+    "SettingRefused",
     "OffOutcome",
 ]
 
@@ -123,6 +124,17 @@ logger = logging.getLogger(__name__)
 #: that ends by saying that failure itself, right above the X-RAYS warning, keeps these records off
 #: the terminal (each layer that tried logged its own copy, and the operator read it three times).
 OFF_FAILURE = "tube_off_failure"
+
+
+class SettingRefused(ValueError):
+    """A value or a configuration the driver refuses before anything is sent: ``str()`` names who
+    refuses (``of``: "L8121" for a voltage or current, "L8121 configuration" for a setting), and
+    ``detail`` is the rest, for a caller that says it in its own words (the command line, a
+    protocol's ``[source]``) instead of cutting the speaker off the text."""
+
+    def __init__(self, detail: str, *, of: str = "L8121 configuration"):
+        super().__init__(f"{of}: {detail}")
+        self.detail = detail
 
 
 class SwitchedOff(DeviceError):
@@ -282,7 +294,7 @@ class SourceConfig:
     >>> SourceConfig(kv_max=1000)
     Traceback (most recent call last):
     ...
-    ValueError: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
+    acquisition.l8121.SettingRefused: L8121 configuration: kv_max = 1000 kV exceeds the L8121 rating of 150 kV; a configuration may only tighten the ratings
     """
 
     dialect: str = "A"
@@ -345,19 +357,17 @@ class SourceConfig:
         dialect = str(self.dialect)
         self.dialect = dialect.upper() if dialect.upper() in ("A", "B") else dialect.lower()
         if self.dialect not in ("A", "B", "auto"):
-            raise ValueError(f"L8121 configuration: dialect {dialect!r}: expected 'A', 'B' or 'auto'")
+            raise SettingRefused(f"dialect {dialect!r}: expected 'A', 'B' or 'auto'")
         self.focus_modes = _focus_modes(self.focus_modes)
         codes = self.allowed_error_codes
         if not isinstance(codes, (list, tuple)) or not all(type(c) is int and c > 0 for c in codes):
-            raise ValueError(
-                f"L8121 configuration: allowed_error_codes {codes!r}: expected a list of error codes above 0"
-            )
+            raise SettingRefused(f"allowed_error_codes {codes!r}: expected a list of error codes above 0")
         self.allowed_error_codes = tuple(codes)
         if not isinstance(self.error_query, bool):
-            raise ValueError(f"L8121 configuration: error_query {self.error_query!r}: expected true or false")
+            raise SettingRefused(f"error_query {self.error_query!r}: expected true or false")
         self.probe_baudrates = tuple(_baud(b, "probe_baudrates") for b in self.probe_baudrates)
         if not self.probe_baudrates:
-            raise ValueError("L8121 configuration: probe_baudrates is empty")
+            raise SettingRefused("probe_baudrates is empty")
         if self.baudrate is not None:
             self.baudrate = _baud(self.baudrate, "baudrate")
         for name in (
@@ -380,24 +390,19 @@ class SourceConfig:
             if getattr(self, name) is not None:
                 setattr(self, name, _finite(getattr(self, name), name))
         if self.voltage_scale == 0:
-            raise ValueError("L8121 configuration: voltage_scale must be > 0")
+            raise SettingRefused("voltage_scale must be > 0")
         self._check_beam_drop()
         self._check_ceiling()
         if not (self.kv_min <= self.kv_max and self.ua_min <= self.ua_max):
-            raise ValueError(
-                f"L8121 configuration: empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}"
-            )
+            raise SettingRefused(f"empty range kv {self.kv_min}..{self.kv_max} or ua {self.ua_min}..{self.ua_max}")
         self._check_timeouts()
         if not isinstance(self.standby_needs_warmup_done, bool):
-            raise ValueError(
-                "L8121 configuration: standby_needs_warmup_done must be true or false, "
-                f"got {self.standby_needs_warmup_done!r}"
+            raise SettingRefused(
+                f"standby_needs_warmup_done must be true or false, got {self.standby_needs_warmup_done!r}"
             )
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
-            raise ValueError(
-                f"L8121 configuration: off_attempts must be a whole number >= 1, got {self.off_attempts!r}"
-            )
+            raise SettingRefused(f"off_attempts must be a whole number >= 1, got {self.off_attempts!r}")
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
         self._check_given_tolerances()
@@ -419,8 +424,8 @@ class SourceConfig:
         """L8121.md: stop the series on a dropped beam. 0 never called one dropped (a beam gone to
         nothing with STS still on passed every poll); 1 or more called every beam dropped."""
         if not 0 < self.beam_drop_fraction < 1:
-            raise ValueError(
-                f"L8121 configuration: beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
+            raise SettingRefused(
+                f"beam_drop_fraction = {self.beam_drop_fraction!r}: expected a fraction "
                 "above 0 and below 1 (of the set current or voltage, below which the beam counts as dropped)"
             )
 
@@ -437,11 +442,11 @@ class SourceConfig:
             "ready_timeout_s",
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
-                raise ValueError(f"L8121 configuration: {name} must be > 0")
+                raise SettingRefused(f"{name} must be > 0")
         for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
             if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
-                raise ValueError(
-                    f"L8121 configuration: {name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
+                raise SettingRefused(
+                    f"{name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
 
@@ -454,8 +459,8 @@ class SourceConfig:
             ("watts_max", self.watts_max, r.watts_max, "W", True),
         ):
             if (value > rating) if above else (value < rating):
-                raise ValueError(
-                    f"L8121 configuration: {name} = {value:g} {unit} "
+                raise SettingRefused(
+                    f"{name} = {value:g} {unit} "
                     f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
                     f"a configuration may only tighten the ratings"
                 )
@@ -475,24 +480,24 @@ class SourceConfig:
         """
         for name, value, unit in (("voltage_kv", voltage_kv, "kV"), ("current_ua", current_ua, "µA")):
             if not is_number(value):
-                raise ValueError(f"L8121: {name} must be a number of {unit}, got {value!r}")
+                raise SettingRefused(f"{name} must be a number of {unit}, got {value!r}", of="L8121")
             if not math.isfinite(value):
-                raise ValueError(f"L8121: {name} must be finite, got {value!r} {unit}")
+                raise SettingRefused(f"{name} must be finite, got {value!r} {unit}", of="L8121")
         r = RATINGS
         kv_lo, kv_hi = max(self.kv_min, r.kv_min), min(self.kv_max, r.kv_max)
         ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
         if not kv_lo <= voltage_kv <= kv_hi:
-            raise ValueError(
-                f"L8121: voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV"
+            raise SettingRefused(
+                f"voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV", of="L8121"
             )
         if not ua_lo <= current_ua <= ua_hi:
-            raise ValueError(
-                f"L8121: current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA"
+            raise SettingRefused(
+                f"current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA", of="L8121"
             )
         watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
         if watts > w_hi:
-            raise ValueError(
-                f"L8121: {voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W"
+            raise SettingRefused(
+                f"{voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W", of="L8121"
             )
 
     def check_tolerances(self, set_kv: float | None, set_ua: float | None, keys=("kv_tolerance", "ua_tolerance")):
@@ -510,8 +515,8 @@ class SourceConfig:
                 continue
             tol = self._tolerance_at(key, spec, set_value)
             if tol > room * abs(set_value):
-                raise ValueError(
-                    f"L8121 configuration: {key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                raise SettingRefused(
+                    f"{key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
                     f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
                     f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
                 )
@@ -550,7 +555,7 @@ class SourceConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(mapping) - known)
         if unknown:
-            raise ValueError(f"L8121 configuration: unknown key(s) {unknown}; known: {sorted(known)}")
+            raise SettingRefused(f"unknown key(s) {unknown}; known: {sorted(known)}")
         return cls(**mapping)
 
     @classmethod
@@ -576,7 +581,7 @@ class SourceConfig:
 
 def _finite(value, name: str) -> float:
     if not is_number(value) or not math.isfinite(value) or value < 0:
-        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {value!r}")
+        raise SettingRefused(f"{name} must be a finite number >= 0, got {value!r}")
     return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
 
 
@@ -588,7 +593,7 @@ BAUDRATES = (9600, 38400, 115200)
 
 def _baud(value, name: str) -> int:
     if not is_integer(value) or value <= 0:
-        raise ValueError(f"L8121 configuration: {name} = {value!r}: expected a whole number of baud > 0")
+        raise SettingRefused(f"{name} = {value!r}: expected a whole number of baud > 0")
     if value not in BAUDRATES:
         logger.warning(
             "L8121 configuration: %s = %s is not a rate L8121.md lists (%s): used as configured",
@@ -603,10 +608,10 @@ def _focus_modes(modes) -> tuple:
     """``focus_modes`` as a tuple of Python ints: whole numbers only, each (int() took "1" and 1.5
     as mode 1, and a string "0123" as four modes)."""
     if isinstance(modes, (str, bytes)) or not isinstance(modes, Iterable):
-        raise ValueError(f"L8121 configuration: focus_modes must be a list of whole numbers >= 0, got {modes!r}")
+        raise SettingRefused(f"focus_modes must be a list of whole numbers >= 0, got {modes!r}")
     modes = list(modes)  # read twice below: a generator would be empty the second time
     if not all(is_integer(m) and m >= 0 for m in modes):
-        raise ValueError(f"L8121 configuration: focus_modes must hold whole numbers >= 0, got {modes!r}")
+        raise SettingRefused(f"focus_modes must hold whole numbers >= 0, got {modes!r}")
     return tuple(int(m) for m in modes)  # a numpy integer is not TOML's
 
 
@@ -632,10 +637,10 @@ def _tolerance(spec: float | str, set_value: float, name: str) -> float:
     if isinstance(spec, str):
         m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?|\.[0-9]+)\s*%\s*", spec)  # "1.2.3%" was float()'s traceback
         if not m:
-            raise ValueError(f"L8121 configuration: {name} {spec!r} is neither a number nor a percentage like '2%'")
+            raise SettingRefused(f"{name} {spec!r} is neither a number nor a percentage like '2%'")
         return abs(set_value) * float(m.group(1)) / 100
     if not is_number(spec) or not 0 <= spec < math.inf:  # inf: any beam, even none, counts as stable
-        raise ValueError(f"L8121 configuration: {name} must be a finite number >= 0, got {spec!r}")
+        raise SettingRefused(f"{name} must be a finite number >= 0, got {spec!r}")
     return float(spec)
 
 
@@ -1223,6 +1228,9 @@ def _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, 
         try:
             found = _probe_at(link, baud, exchange, notes, seen)
             missed = exchange[-1].reply is None
+            dsr = missed and getattr(link, "dsr_low", str)()  # why a port may be silent (a pty: "")
+            if dsr and dsr not in notes:
+                notes.append(dsr)
         except BaseException as exc:
             if not isinstance(exc, Exception):  # an interrupt: say what is known of the tube
                 # (a transport that does not count its writes is taken to have sent something)
@@ -1554,7 +1562,7 @@ class L8121:
         and :class:`SourceConfig` keys (``dialect``, ``baudrate``, limits, ...)."""
         table = dict(source) if isinstance(source, Mapping) else _toml_section(source, section)
         if "url" not in table:
-            raise ValueError(f"L8121 configuration: no 'url' in [{section}]")
+            raise SettingRefused(f"no 'url' in [{section}]")
         url = table.pop("url")
         return cls(url, connect=connect, config=SourceConfig.from_dict(table))
 
@@ -2559,8 +2567,9 @@ class L8121:
         sends ``WUP``; dialect B sends ``XON`` only while ``DAG`` says ``YET`` (an ``XON`` with the
         warm-up done would be an exposure), and switches off if the controller answers it with
         X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
-        standby is switched off (confirmed) and counts as done if the controller reports it done.
-        It waits first for the controller's power-on checks (:meth:`settled_status`).
+        standby is switched off (confirmed) and counts as done if the controller reports it done;
+        one read done but never read running (shorter than a poll, or a unit whose ``STS`` never
+        says so) is switched off too, confirmed, before it is called done. It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
@@ -2707,6 +2716,8 @@ class L8121:
             elif callable(progress):
                 progress(elapsed, state)
             if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
+                if not seen_running and not self.warmup_joined:
+                    self._warm_up_unseen(elapsed)
                 return
             if state == SourceState.XRAY_ON:
                 if not seen_running:  # the start command began an exposure, not a warm-up
@@ -2750,6 +2761,22 @@ class L8121:
             raise self._switched_off(DeviceError, why, state, None, ask_code=False)
         logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
 
+    def _warm_up_unseen(self, elapsed: float) -> None:
+        """The warm-up reads done (standby, A ``SWE 0`` / B ``DAG ... END``) but no poll read it
+        running: shorter than a poll, or a unit whose ``STS`` never says warming up. Nothing read
+        says the start command's beam is over -- L8121.md ties no state to its echo, and a state
+        that follows late may yet start it (after A's forced ``WUP`` from standby, standby and done
+        are also what a unit reads until it begins) -- so the tube is switched off (``XOF``, "always accepted"), confirmed by ``STS``,
+        before the warm-up is called done and the tube off. That ``XOF`` is also what disarms
+        the guardian's watchdog, which after a start command takes a standby as off only once
+        the state has read on or an ``XOF`` passed (left by review s44rr2: its watchdog sent an
+        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told."""
+        state, failed = self._off_for_fault()
+        if failed is not None:
+            why = f"the warm-up read done after {elapsed:.1f} s without ever reading it running"
+            raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
+        logger.info("%s: warm-up read done, never running: switched off to be sure (%s)", self.port, state.name)
+
     def _warm_up_pending(self) -> bool:
         """Whether a warm-up whose state still reads "needed" is under way all the same: dialect A's
         ``SPH 1`` (pre-heating; ``STS`` has no value for it) or its ``SWE 1`` (running). L8121.md
@@ -2784,8 +2811,8 @@ class L8121:
         standby with the warm-up done (A: ``STS 2`` and ``SWE 0``; B: ``STS STANDBY`` and ``DAG ... END``), a closed interlock
         and (B) the operate switch on REMOTE (queries only); set the values (A: ``HIV``, ``CUR``;
         B: ``PHV``, ``PCU``) and the focus last set (:attr:`focus_wanted`), each read back; the
-        interlock again and the controller's error code (``SER``: anything but 0 refuses, nothing
-        reset); ``XON``; poll every ``poll_s`` until the measured values are within
+        interlock again, the controller's error code (``SER``: anything but 0 refuses, nothing
+        reset) and (B) ``DAG`` still ``END``; ``XON``; poll every ``poll_s`` until the measured values are within
         ``kv_tolerance`` / ``ua_tolerance`` of the set ones (the state may still read standby for
         ``xon_start_s`` after the echo, the interlock watched; past it, "X-rays did not come on").
         Any failure or interruption after ``XON`` switches off before the exception propagates,
@@ -2822,6 +2849,7 @@ class L8121:
             if not self.interlock_closed():
                 raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
             self._require_no_controller_error("X-rays not switched on")  # last too: no fault standing
+            self._require_warm_up_still_done()
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
             if self.before_xon is not None:
                 self.before_xon(kv_i, ua_i)
@@ -2874,6 +2902,18 @@ class L8121:
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
         self._require_remote("X-rays not switched on")
+
+    def _require_warm_up_still_done(self) -> None:
+        """B: ``DAG`` still ``END``, read last before ``XON``. B's ``XON`` starts a warm-up when
+        one is due (L8121.md), and :meth:`_require_ready`'s ``DAG`` came before the settings and
+        their read-back (~0.7 s, ten exchanges, at the default spacing): the 8-hour rule falling
+        due meanwhile turned the exposure's ``XON`` into a warm-up at the exposure's settings.
+        A's ``XON`` is refused unless standby: it cannot start a warm-up."""
+        if self.dialect is DIALECT_B and not self._read("warmup").done:
+            raise DeviceError(
+                f"{self.port}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
+                "decided it while the settings were sent (call warm_up())"
+            )
 
     def _require_remote(self, what: str) -> None:
         """B: the operate switch on REMOTE (``SRL``) before anything that leads to an ``XON``

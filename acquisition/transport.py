@@ -1030,10 +1030,27 @@ class SerialTransport:
             if left <= 0:
                 got = f"; partial reply {_quoted(bytes(buf))}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
+                dsr = self.dsr_low()
+                got += f"; {dsr}" if dsr else ""
                 raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
             buf += ser.read(max(1, ser.in_waiting))
+
+    def dsr_low(self) -> str:
+        """A note on a silent controller when the port reads DSR low, else "". L8121.md
+        says the L8121-02's driver takes DSR dropping for a failed link, but gives no line state
+        for the L8121-01, and a three-wire cable (or an adapter without the line) reads DSR low
+        with a controller that answers: so DSR refuses nothing and is read only to say why a
+        controller may be silent. A port without modem lines (a pty: ``OSError``; ``socket://``:
+        always high) says nothing."""
+        try:
+            low = self._serial is not None and self._serial.dsr is False
+        except (serial.SerialException, OSError, ValueError, AttributeError, NotImplementedError):
+            return ""
+        if not low:
+            return ""
+        return "DSR low: the controller may be off or unplugged (a cable that does not carry DSR reads low too)"
 
 
 def _quoted(data: bytes, head: int = 24) -> str:

@@ -339,6 +339,39 @@ def test_transport_discards_a_late_reply():
         assert lnk.query("SIN") == "SIN 0"
 
 
+@pytest.mark.parametrize("dsr", [False, True, None], ids=["low", "high", "unknown"])
+def test_a_silent_port_whose_dsr_reads_low_says_so(dsr, monkeypatch):
+    """DSR low is what the L8121-02's driver takes for a failed link (L8121.md, dialect B), but
+    the notes give no line state for the L8121-01, and a three-wire cable reads DSR low too: not
+    a refusal at open, but the operator's one line about a silent controller names it. A pty has
+    no modem lines (pyserial's DSR raises OSError there: ``unknown``); ``low`` and ``high`` fake
+    the DSR reading alone -- the only way to drive it here -- on a real, silent pty."""
+    import pty
+
+    import serial as pyserial
+
+    master, slave = pty.openpty()
+    name = os.ttyname(slave)
+    try:
+        if dsr is not None:
+            monkeypatch.setattr(pyserial.Serial, "dsr", property(lambda self: dsr))
+        with SerialTransport(name, timeout_s=0.1, retries=0) as lnk:
+            with pytest.raises(DeviceError) as err:
+                lnk.query("STS")
+    finally:
+        os.close(master), os.close(slave)
+    said = str(err.value)
+    assert "\n" not in said and said.startswith(f"{name}: no reply to STS within 0.1 s"), said
+    assert ("DSR low" in said) == (dsr is False), said
+    # the probe (dialect "auto", the default) says it once in its one line, whatever the rates tried
+    master, slave = pty.openpty()
+    try:
+        summary = probe(os.ttyname(slave), baudrates=(9600, 38400), timeout_s=0.1).summary()
+    finally:
+        os.close(master), os.close(slave)
+    assert "\n" not in summary and summary.count("DSR low") == (dsr is False), summary
+
+
 class _StalledLink:
     """A port through which this process is stalled across the reply's deadline. A fake -- the
     only way to cause the fault deterministically: a loaded machine, a long garbage collection or
@@ -1139,11 +1172,27 @@ def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration(
         SourceConfig(standby_needs_warmup_done="no")
 
 
-def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
-    """The controller decides a warm-up is due between the driver's DAG and its XON: the XON
-    meant as an exposure starts AGING; the driver switches off at its first poll."""
+def test_b_a_warm_up_that_falls_due_while_the_settings_are_sent_stops_before_xon():
+    """B's XON starts a warm-up when one is due (L8121.md), and the only DAG was read before the
+    settings and their read-back: ~0.7 s and ten exchanges before XON (s44), so the 8-hour rule
+    falling due meanwhile turned the exposure's XON into a warm-up at the exposure's settings
+    (switched off at the first poll: safe, but the run failed). DAG is read again last before
+    XON: refused, no X-ray command sent."""
     model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
     model.inject_after("PCU", model.require_warm_up)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(DeviceError, match=r"X-rays not switched on: warm-up needed, as DAG now says \(YET\)"):
+            src.on(60, 250)
+        assert "XON" not in model.commands and not model.xray_on
+        assert model.commands[-1] == "DAG"  # the last exchange before XON would have been
+
+
+def test_b_an_exposure_xon_that_starts_a_warm_up_is_switched_off():
+    """The controller decides a warm-up is due between the driver's last DAG and its XON (one
+    exchange apart): the XON meant as an exposure starts AGING; the driver switches off at its
+    first poll."""
+    model = L8121Model(dialect="B", warmed_up=True, warmup_s=30, ramp_s=RAMP_S)
+    model.inject_after("SER", lambda: model.inject_after("DAG", model.require_warm_up))
     with PtyServer(model) as server, driver(server, "B") as src:
         with pytest.raises(
             SourceFault,
@@ -3450,6 +3499,36 @@ def test_a_standby_read_while_xon_comes_on_keeps_the_guardians_watchdog_armed(di
     watch.replied(query, on)
     watch.replied(query, standby)  # on, then standby: the beam went off (the driver trips on it)
     assert not watch.may_be_on
+
+
+def test_a_warm_up_never_read_running_ends_switched_off_and_disarms_the_guardians_watch(dialect):
+    """Left by review s44rr2: a warm-up shorter than one poll (or a unit whose STS never says
+    warming up) read standby and done right after its start command. Nothing read says that
+    command's beam is over -- a state that follows the echo late may yet start it -- so the driver
+    called the tube off on no evidence, and the guardian's watch, which disarms after WUP/XON only
+    once the state read on or an XOF passed, stayed armed: its watchdog later sent an XOF with a
+    warning. Such a warm-up now ends with XOF, confirmed by STS; the guardian's watch, fed the
+    exchanges the driver made, ends disarmed."""
+    from types import SimpleNamespace
+
+    from acquisition.guardian import _Watch
+
+    model = L8121Model(dialect=dialect, warmup_s=0, ramp_s=0)  # done before the first poll
+    with PtyServer(model) as server:
+        src = driver(server, dialect)
+        src.connect()
+        src.warm_up(progress=False)
+        assert not model.xray_on and not src.may_be_on
+        assert src.warmup_state() == WarmupState.DONE  # the XOF undid nothing: the warm-up counts
+        src.close()
+    commands = model.commands
+    start = len(commands) - commands[::-1].index("WUP" if dialect == "A" else "XON")
+    assert "XOF" in commands[start:], commands  # switched off after the start command
+    watch = _Watch(SimpleNamespace(dialect=dialect))
+    for exchange in model.log:  # as the guardian's _serve passes each request on
+        watch.sent(exchange.command)
+        watch.replied(exchange.command, exchange.reply)
+    assert not watch.may_be_on and not watch.starting
 
 
 def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():

@@ -85,6 +85,7 @@ ON_60_250 = {
         ("SPC", "SPC 250uA"),
         ("SIN", "INTER LOCK ON"),  # the interlock again, last before XON
         ("SER", "SER 0"),  # and no controller error standing
+        ("DAG", "AGING 0 0 END"),  # and still no warm-up due: this XON would start one
         ("XON", "XON"),
         ("STS", "XON"),
         ("SHV", "SHV 60.0kV"),
@@ -332,7 +333,7 @@ def test_on_refused_by_queries_alone(dialect, ready, message):
 def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
     pairs = (
         CONNECT["B"]
-        + ON_60_250["B"][:13]
+        + ON_60_250["B"][:14]
         + [
             ("STS", "AGING"),  # the controller started a warm-up instead
             ("XOF", "XOF"),

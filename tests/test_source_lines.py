@@ -12,6 +12,7 @@ the class the command line builds; the link and the commands stay real.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -272,6 +273,30 @@ def test_source_values_out_of_range_are_refused_before_the_port_is_opened(capsys
     assert err[0].endswith("; nothing was sent"), err
 
 
+def test_a_refused_value_is_said_from_the_refusals_field_not_by_cutting_its_speaker(capsys, monkeypatch):
+    """The command line and a protocol's ``[source]`` say the driver's refusal of a value in their
+    own words: they read ``SettingRefused.detail``, where they cut "L8121: " or "L8121
+    configuration: " off its text (a speaker worded otherwise came through whole, doubled in the
+    line). The refusal is faked with another speaker; its detail is all either line says of it."""
+    from acquisition.l8121 import SettingRefused, SourceConfig
+    from acquisition.protocols.compression_series import ProtocolError, SourceSettings, _check_source
+    from radiokit.cli import main
+
+    detail = "voltage_kv = 60 kV is outside this unit's range"
+
+    def refuse(self, voltage_kv, current_ua):
+        raise SettingRefused(detail, of="L8121-01 (unit 2)")
+
+    monkeypatch.setattr(SourceConfig, "check_exposure", refuse)
+    code = main(["acquire", "source", "on", "--port", "/dev/null/none", "--kv", "60", "--ua", "250", "--for", "1"])
+    assert code == 2 and capsys.readouterr().err.splitlines() == [
+        f"error: --kv 60 --ua 250: {detail}; nothing was sent"
+    ]
+    with pytest.raises(ProtocolError) as err:
+        _check_source(SourceSettings())
+    assert str(err.value) == f"[source] {detail}"
+
+
 # -- `source on --for SECONDS`: the beam held, then switched off ---------------------------------
 
 HOLD = ("--kv", "60", "--ua", "250")
@@ -297,6 +322,41 @@ def test_source_on_holds_the_beam_for_its_time_then_ends_on_the_confirmed_switch
     assert commands.count("XON") == 1 and commands[xof:] == ["XOF", "STS"], commands
     assert times[xof] - times[xon] >= 0.3
     assert commands[xon:xof].count("SIN") >= 0.3 // SourceSettings.poll_s, commands  # the interlock watched
+
+
+def test_source_on_counts_the_hold_down_on_a_terminal_and_ends_it(capsys, monkeypatch):
+    """The operator's terminal (stderr a real pseudo-terminal) shows the hold as a bar named for
+    the port, from 0 to its end, cleared when the hold is over; the line after it says the tube
+    is off. Found writing this: a hold under half a second had a bar of round(0.3) = 0 s, which
+    tqdm drew as a bare "0s" that never moved."""
+    import fcntl
+    import pty
+    import struct
+    import sys
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a new pty is 0 x 0
+    try:
+        with open(slave, "w") as tty:  # closes the terminal's end: the read below then ends
+            monkeypatch.setattr(sys, "stderr", tty)  # the bar is drawn only where stderr is a terminal
+            model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.1)
+            code, out, _, port = _source_said(model, "on", capsys, None, *HOLD, "--for", "0.3")
+            monkeypatch.undo()
+        drawn = b""
+        # what the command wrote reaches this end a moment later (the kernel passes it on), and
+        # then EIO: read until then, not until the first empty moment
+        with contextlib.suppress(OSError):
+            while chunk := os.read(master, 65536):
+                drawn += chunk
+    finally:
+        os.close(master)
+    assert code == 0 and out[-1] == f"{port}: 0.3 s over: tube off (confirmed by STS: STANDBY)", out
+    frames = [f for f in drawn.decode(errors="replace").split("\r") if f.strip()]
+    assert frames and all(f.startswith(f"X-rays on ({port}):") for f in frames), frames
+    counts = [m.groups() if (m := re.search(r"\| (\d+)/(\d+) \[", f)) else None for f in frames]
+    assert counts[0] == ("0", "1") and counts[-1] == ("1", "1"), frames  # from 0 to its end
+    assert drawn.endswith(b"\r") and not drawn.rsplit(b"\r", 2)[-2].strip(), drawn  # then cleared
 
 
 @pytest.mark.parametrize(

@@ -380,8 +380,14 @@ def _source_limits(s: SourceSettings):
             }
         )
     except (TypeError, ValueError, OverflowError) as exc:
-        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
+        raise ProtocolError(f"[source] {_refusal(exc)}") from None
     return cfg
+
+
+def _refusal(exc: Exception) -> str:
+    """What the driver refused, in ``[source]``'s words: a :class:`~acquisition.l8121.SettingRefused`'s
+    ``detail`` (its text without "L8121 configuration: "), else the exception's own text."""
+    return getattr(exc, "detail", str(exc))
 
 
 def _limit_type_error(kind: str, value) -> str:
@@ -423,18 +429,18 @@ def _check_source(s: SourceSettings) -> None:
         try:
             SourceConfig(baudrate=s.baudrate)
         except ValueError as exc:
-            raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
+            raise ProtocolError(f"[source] {_refusal(exc)}") from None
     try:  # the driver's own check (the one implementation of the ratings), before anything is sent
         cfg.check_exposure(s.voltage_kv, s.current_ua)
         # ... and on the whole numbers the driver will send (it rounds half up): 60.5 kV x 165 uA
         # passed a 10 W limit here, warmed the tube up, and was refused only at XON
         cfg.check_exposure(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
-        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121: ')}") from None
+        raise ProtocolError(f"[source] {_refusal(exc)}") from None
     try:  # the tolerances, given or the driver's defaults, at this protocol's setting (as on() judges them)
         cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
-        raise ProtocolError(f"[source] {str(exc).removeprefix('L8121 configuration: ')}") from None
+        raise ProtocolError(f"[source] {_refusal(exc)}") from None
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
         # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
         raise ProtocolError(
