@@ -2,6 +2,7 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import math
 import os
 import re
 import subprocess
@@ -1344,6 +1345,50 @@ def test_a_4d_tiff_series_is_read_flat_and_info_says_so(tmp_path, kw):
     np.testing.assert_array_equal(got.data, frames.reshape(10, 30, 40))
     res = run_cli("info", path)
     assert res.returncode == 0 and "read flat" in res.stdout and "2 x 5" in res.stdout, res.stdout
+
+
+@pytest.mark.parametrize(
+    "shape, axes",
+    [((5, 30, 1), "ZYX"), ((5, 1, 30), "ZYX"), ((2, 3, 30, 1), "TZYX"), ((4, 1, 1), "TYX")],
+)
+def test_a_tifffile_stack_of_one_column_frames_reads_as_its_frames(tmp_path, shape, axes):
+    """s46: tifffile drops an array's trailing 1s from the pages it stores, so (5, 30, 1) frames
+    of one column, axes "ZYX", are one 5 x 30 page: read as one 5 x 30 frame, transposed and
+    without its 5 frames. The axes its description gives say which are rows and columns."""
+    frames = _frames(math.prod(shape[:-2]), *shape[-2:])
+    path = tmp_path / "columns.tif"
+    kw = {"metadata": {"axes": axes}, "photometric": "minisblack"}  # (a 3 or 4 before YX is no RGB)
+    tifffile.imwrite(path, frames.reshape(shape), **kw)
+    np.testing.assert_array_equal(read(path).data, frames)
+    np.testing.assert_array_equal(read(path, n=2).data, frames[:2])
+    # compressed, its pages are not runs of frames read one at a time: refused, never misread
+    tifffile.imwrite(path, frames.reshape(shape), compression="zlib", **kw)
+    if shape[-1] == 1:
+        with pytest.raises(FormatError, match=rf"columns\.tif: .*{shape[-2]}x1 .*compressed"):
+            read(path)
+        with tifffile.TiffWriter(path) as tif:  # a series per write, each of such frames
+            for _ in range(2):
+                tif.write(frames.reshape(shape), **kw)
+        with pytest.raises(FormatError, match=r"columns\.tif: .*several such series"):
+            read(path)
+
+
+@pytest.mark.parametrize("axes", [None, "YXS"])
+def test_a_tifffile_image_of_one_trailing_sample_still_reads_as_one_frame(tmp_path, axes):
+    """An (rows, cols, 1) image (a channel axis of one) is one frame, as tifffile's own axes
+    (YXQ, YXS) say; without axes, the one line says how a stack of one-column frames is told."""
+    image = _frames(1)[0]
+    path = tmp_path / "image.tif"
+    tifffile.imwrite(path, image[..., None], **({"metadata": {"axes": axes}} if axes else {}))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = read(path)
+    np.testing.assert_array_equal(got.data, image[None])
+    said = [str(w.message) for w in caught]
+    if axes is None:
+        assert any("image.tif" in s and "(30, 40, 1)" in s and "axes" in s for s in said), said
+    else:
+        assert not said, said
 
 
 @needs_itex

@@ -358,7 +358,7 @@ class FrameSource:
                     "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
-        self._contiguous = self._contiguous_stack(first, all_pages)
+        self._contiguous = self._trimmed_stack(first, self._pages) or self._contiguous_stack(first, all_pages)
         self._warn_unread()
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
@@ -380,7 +380,7 @@ class FrameSource:
         if self._words:
             self.dtype = np.dtype(f"u{self._words}")
         if self._contiguous:
-            self.n = self._contiguous["n"]
+            self.n, self.frame_shape = self._contiguous["n"], (self._contiguous["rows"], self._contiguous["cols"])
             self._contiguous["dtype"] = self.dtype.newbyteorder(self._tif.byteorder)
         if self._contiguous and first.bitspersample % 8 and not self._words:
             raise FormatError(
@@ -421,6 +421,8 @@ class FrameSource:
                 series = []
             if len(series) == 1 and series[0].kind == "mmstack" and series[0].axes[-2:] == "YX":
                 shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_shaped and "axes" in (self._contiguous or {}):  # frames of one column (_trimmed_stack)
+            shape, axes = self._contiguous["shape"][:-2], self._contiguous["axes"][:-2]
         elif tif.is_shaped:
             series = _shaped_series(self._pages)
             if len(series) == 1 and len(series[0][0]) > 2:
@@ -1002,6 +1004,46 @@ class FrameSource:
                 path,
                 f"TIFF IFD after page {len(pages) - 1} (offset {following}) is not a readable IFD: corrupt",
             )
+
+    def _trimmed_stack(self, first, pages) -> dict | None:
+        """The geometry of frames of one column (or one pixel) tifffile stored as fewer, larger
+        pages, else None. Why: tifffile drops an array's trailing 1s from the pages it writes, so
+        five 30 x 1 frames, axes "ZYX", fill one 5 x 30 page: read as the page, one frame,
+        transposed. The axes its writer gave say which are rows and columns; without any, tifffile's
+        own (YXQ: a channel of one) make the page an image, read so and said (an (H, W, 1) array is
+        far more often an image with a channel axis than frames of one column). The frames are read
+        as raw frames where the pages are one uncompressed run, as tifffile writes them."""
+        shape, axes = _trimmed_description(first)
+        if shape is None or self._tif.is_imagej:
+            return None
+        rows, cols = shape[-2:]
+        what = f"its tifffile description says {math.prod(shape[:-2])} frames of {rows}x{cols} (axes {axes})"
+        if axes and any(page.shaped_description for page in pages[1:]):  # a series per write
+            raise FormatError(self.path, f"{what} in a TIFF of several such series (one per write): not read")
+        if math.prod(shape) != len(pages) * math.prod(first.shape):
+            return None
+        if axes is None:
+            warnings.warn(
+                f"{self.path}: its tifffile description says shape {tuple(shape)} without axes: read as "
+                f"{len(pages)} frame(s) of {first.shape[0]}x{first.shape[1]}, as tifffile takes its axes "
+                "(a trailing 1 a channel); "
+                f"were they {math.prod(shape[:-2])} frames of {rows}x{cols}, write them with their axes "
+                "(metadata={'axes': 'ZYX'})",
+                UserWarning,
+                stacklevel=4,
+            )
+            return None
+        dtype = np.dtype(first.dtype).newbyteorder(self._tif.byteorder)
+        offset, size = int(first.dataoffsets[0]), math.prod(first.shape) * dtype.itemsize
+        for k, page in enumerate(pages):
+            if page.compression != 1 or not page.is_contiguous or int(page.dataoffsets[0]) != offset + k * size:
+                raise FormatError(
+                    self.path,
+                    f"{what}, stored {first.shape[0]}x{first.shape[1]} to a page and compressed or scattered, "
+                    "which radiokit does not split: write them uncompressed, or a page per frame",
+                )
+        self._fh = open(self.path, "rb")
+        return dict(n=math.prod(shape[:-2]), rows=rows, cols=cols, dtype=dtype, offset=offset, shape=shape, axes=axes)
 
     def _contiguous_stack(self, first, pages) -> dict | None:
         """The geometry of a stack stored after a single IFD, else None.
@@ -2001,6 +2043,26 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
             return []
         found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
     return found
+
+
+def _trimmed_description(page) -> tuple[list | None, str | None]:
+    """The shape and axes (None where it gives none) a tifffile description on ``page`` declares
+    where tifffile stored it without its trailing 1s (the page is the shape's last two left),
+    else (None, None). Axes naming a samples axis (S) are an image's, also (None, None)."""
+    try:
+        meta = strict_json.loads(page.shaped_description or "")
+        shape = [int(v) for v in meta["shape"]]
+        axes = meta.get("axes")
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        return None, None
+    trimmed = list(shape)
+    while len(trimmed) > 2 and trimmed[-1] == 1:
+        trimmed.pop()
+    if len(trimmed) == len(shape) or tuple(trimmed[-2:]) != tuple(page.shape) or min(shape) < 1:
+        return None, None
+    if not isinstance(axes, str) or len(axes) != len(shape):
+        return shape, None
+    return (shape, axes) if axes[-2:] == "YX" else (None, None)
 
 
 def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:
