@@ -590,10 +590,36 @@ def test_process_says_how_many_nan_pixels_it_filled_in_the_projections(tmp_path)
         del h5["entry/instrument/detector/data"]
         h5["entry/instrument/detector/data"] = frames
     with pytest.warns(
-        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections, per frame \(step 2: 20\)"
+        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections \(step 2: 20 in 1 of 1 frame\)"
     ):
         steps = load_steps(path)
     assert all(np.isfinite(image).all() for image in steps.images)
+
+
+def test_process_counts_every_nan_pixel_and_the_frames_holding_them(tmp_path):
+    """s46: the count was a per-frame average, printed rounded: 3 NaN pixels in one of a step's 4
+    frames read "step 2: 1", one alone "step 2: 0" (a warning of nothing). The true count, and
+    how many of the step's frames hold them."""
+    from radiokit.calibrate import CalibrationWarning
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (32, 40), np.random.default_rng(3)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3000)):
+            for _ in range(3):
+                w.append(rng.integers(level - 10, level + 10, shape), image_key=key)
+        for s in (1, 2):
+            for _ in range(4):
+                w.append(rng.integers(900, 1100, shape), image_key=ImageKey.PROJECTION, step=s)
+    with h5py.File(path, "a") as h5:
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[6 + 4 + 1, 3, 4:7] = np.nan  # step 2's second frame: 3 pixels
+        frames[6 + 4 + 3, 20, 20] = np.inf  # and its fourth: 1
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    with pytest.warns(CalibrationWarning, match=r"exp.h5: NaN or inf pixels .*\(step 2: 4 in 2 of 4 frames\)"):
+        load_steps(path)
 
 
 def test_a_frame_of_only_nan_is_refused(tmp_path):
