@@ -1711,6 +1711,23 @@ def test_a_dataset_hint_naming_a_group_names_the_frames_it_holds(tmp_path):
         read(path, dataset="entry/nothing")
 
 
+def test_one_dataset_hint_for_inputs_of_two_layouts_names_the_file_lacking_it(tmp_path):
+    """s46: ``--dataset`` is one path read from every input: files of one layout (a beamline's
+    scans) take it alike. The file that lacks it is named with the path, and with the frames it
+    does hold, so that the user sees the layouts differ (it said only "no dataset 'scan/data'")."""
+    darks = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for path, where in zip(darks, ("scan/data", "entry/data")):
+        with h5py.File(path, "w") as f:
+            f[where] = _frames(3, 16, 20)
+    with h5py.File(tmp_path / "flat.h5", "w") as f:
+        f["scan/data"] = _frames(3, 16, 20) + 3000
+    res = run_cli(
+        "calibrate", "--dark", *darks, "--flat", tmp_path / "flat.h5", "--dataset", "scan/data", "-o", tmp_path / "c.h5"
+    )
+    one_line_error(res, "b.h5", "no dataset 'scan/data'", "/entry/data (3x16x20 uint16)")
+    assert not (tmp_path / "c.h5").exists()
+
+
 def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
     """Found by trying other labs' files: frames stacked along the last axis (numpy's dstack,
     IDL, Fortran writers) read as rows-many narrow frames, (64, 80, 5) as 64 frames of 80 x 5,

@@ -1488,7 +1488,9 @@ class FrameSource:
                     self.path, f"no dataset {dataset!r}: a group" + (f", holding {listed}" if listed else "")
                 )
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
-                raise FormatError(self.path, f"no dataset {dataset!r}")
+                # one --dataset is read from every input: a file of another layout says what it holds
+                listed = frame_candidates(self._h5)
+                raise FormatError(self.path, f"no dataset {dataset!r}" + (f"; it holds {listed}" if listed else ""))
             if self._h5[dataset].ndim not in (2, 3):
                 raise FormatError(
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
