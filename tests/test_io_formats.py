@@ -2970,6 +2970,40 @@ def test_a_micromanager_index_map_declaring_more_than_its_file_is_refused_withou
     one_line_error(res, path.name, said)
 
 
+def _gdal_tiff(path, data, items, nodata=None):
+    """A TIFF as GDAL writes one: GDAL_METADATA (42112) XML items, GDAL_NODATA (42113) text."""
+    xml = "<GDALMetadata>" + "".join(
+        f'<Item name="{name}" sample="0" role="{name.lower()}">{value}</Item>' for name, value in items.items()
+    )
+    tags = [(42112, "s", 0, xml + "</GDALMetadata>", True)]
+    if nodata is not None:
+        tags.append((42113, "s", 0, str(nodata), True))
+    tifffile.imwrite(path, data, extratags=tags, photometric="minisblack")
+    return path
+
+
+@pytest.mark.parametrize("dtype", ["u2", "f4"])
+def test_a_gdal_tiff_reads_its_scale_and_offset_and_nodata_as_gdal_does(tmp_path, dtype):
+    """s46: GDAL's SCALE and OFFSET (value = stored * scale + offset, as an HDF5 file's CF packing)
+    and its NODATA code were ignored: every pixel read as the stored count, a silent wrong value."""
+    stored = _frames(2, 20, 30).astype(dtype)
+    stored[1, 3, 4:7] = 7  # the nodata code
+    path = _gdal_tiff(tmp_path / "g.tif", stored, {"SCALE": 0.25, "OFFSET": -100}, nodata=7)
+    got = read(path)
+    expected = stored.astype(np.float64) * 0.25 - 100
+    expected[stored == 7] = np.nan
+    assert got.data.dtype.kind == "f"
+    np.testing.assert_allclose(got.data, expected, rtol=1e-6, equal_nan=True)
+    assert got.meta["gdal_scaling"] == {"scale": 0.25, "offset": -100.0, "nodata": 7.0}
+
+
+@pytest.mark.parametrize("items", [{"SCALE": 0}, {"SCALE": "nan"}, {"OFFSET": "abc"}])
+def test_a_gdal_tiff_of_unusable_scaling_is_refused_in_one_line(tmp_path, items):
+    path = _gdal_tiff(tmp_path / "g.tif", _frames(1, 20, 30), items)
+    res = run_cli("info", path)
+    one_line_error(res, "g.tif", "GDAL")
+
+
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"

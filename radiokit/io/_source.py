@@ -389,11 +389,8 @@ class FrameSource:
             )
         self.bits = self._words_read(first)
         self._stored_shape = self.frame_shape
-        self._invert = self._tiff_inversion(first)
-        self._line = self._imagej_calibration(first)
+        self._tiff_values(first)
         self._orientation = self._tiff_orientation(first)
-        if self._line is not None:
-            self.dtype = self._line[2]
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
@@ -1329,6 +1326,8 @@ class FrameSource:
             c0, c1, dtype = self._line
             frame = (frame.astype(np.int32) + int(c0)) if dtype == np.int16 else (c0 + c1 * frame.astype(np.float64))
             frame = frame.astype(dtype)
+        if self._packing is not None:  # (never with the two above: _gdal_packing refuses them)
+            frame = _unpack(frame, self._packing, frame)
         return _ORIENT[self._orientation](frame)
 
     def _read_segments(self, i) -> np.ndarray:
@@ -1457,6 +1456,49 @@ class FrameSource:
         if page.dtype == np.uint16 and (c0, c1) == (-32768.0, 1.0):
             return c0, c1, np.dtype(np.int16)
         return c0, c1, np.dtype(np.float32)
+
+    def _tiff_values(self, first) -> None:
+        """What the stored values are turned into as read: MinIsWhite inverted, ImageJ's density
+        calibration or GDAL's scaling applied (each refuses another with it), and the type read."""
+        self._invert = self._tiff_inversion(first)
+        self._line = self._imagej_calibration(first)
+        self._packing = self._gdal_packing(first)
+        if self._line is not None:
+            self.dtype = self._line[2]
+        if self._packing is not None:
+            self.dtype = self._packing["dtype"]
+
+    def _gdal_packing(self, page) -> dict | None:
+        """GDAL's scaling of the stored values, as :func:`_unpack` applies an HDF5 file's CF
+        packing: ``value = stored * SCALE + OFFSET`` (GDAL_METADATA's band-1 items) and NODATA
+        (GDAL_NODATA) missing, NaN; None where GDAL gives neither, or only a NODATA code for
+        integer pixels (which have no NaN to mark it with: said). Why: read as stored, GDAL's
+        calibrated values were their raw counts, silently."""
+        xml, nodata = page.tags.valueof(42112), page.tags.valueof(42113)
+        found = _gdal_items(self.path, xml) if xml else {}
+        if nodata is not None:
+            try:
+                found["nodata"] = float(str(nodata).strip())
+            except ValueError:
+                raise FormatError(self.path, f"GDAL_NODATA {str(nodata)[:40]!r} is no number") from None
+        if not found or (set(found) == {"nodata"} and np.dtype(page.dtype).kind != "f"):
+            if found:
+                warnings.warn(
+                    f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
+                    "have no NaN to mark them with: read as stored",
+                    UserWarning,
+                    stacklevel=5,
+                )
+            return None
+        if self._line is not None or self._invert is not None:
+            raise FormatError(self.path, "TIFF is GDAL-scaled and ImageJ-calibrated or MinIsWhite: ambiguous")
+        self.meta["gdal_scaling"] = {"scale": 1.0, "offset": 0.0} | found
+        return {
+            "scale_factor": found.get("scale", 1.0),
+            "add_offset": found.get("offset", 0.0),
+            "dtype": np.result_type(np.float32, np.dtype(page.dtype)),
+            "missing": np.array([found["nodata"]]) if "nodata" in found else np.empty(0),
+        }
 
     def _tiff_orientation(self, page) -> int:
         """TIFF's Orientation (1..8), applied as a viewer does; 1 (row 0 at the top, column 0 at
@@ -2044,6 +2086,33 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
         if shape[-2:] != tuple(page.shape):  # a description another program left on other pixels
             return []
         found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
+    return found
+
+
+def _gdal_items(path, xml: str) -> dict:
+    """``scale`` and ``offset`` of band 1 (sample 0) in GDAL_METADATA's XML, those it gives:
+    finite numbers, the scale not 0 (every pixel would read as the offset)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(str(xml))
+    except ET.ParseError as exc:
+        raise FormatError(path, f"GDAL_METADATA is no XML ({exc})") from None
+    found = {}
+    for item in root.iter("Item"):
+        role = (item.get("role") or item.get("name") or "").lower()
+        if role in ("scale", "offset") and item.get("sample", "0") == "0":
+            try:
+                value = float((item.text or "").strip())
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value) or (role == "scale" and value == 0):
+                raise FormatError(
+                    path,
+                    f"GDAL_METADATA's {role.upper()} is {item.text!r}: GDAL's scaling needs a finite number"
+                    + (", not 0" if role == "scale" else ""),
+                )
+            found[role] = value
     return found
 
 
