@@ -676,6 +676,11 @@ _EXTERNAL_HOW = {
     "copy the linked data into it first)",
     "is read with --allow-external (allow_external=True)": "is not read by radiokit process: copy the linked "
     "data into the file first",
+    # process has no --dataset either: it reads experiment files only (s46: it named the option)
+    "pass --dataset PATH (dataset= in Python) to read one": "radiokit process reads experiment files only "
+    "(radiokit correct --dataset PATH reads one)",
+    "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)": "(radiokit process "
+    "reads experiment files only; radiokit correct --dataset PATH reads another layout)",
 }
 
 
@@ -1014,7 +1019,15 @@ def cmd_process(args) -> int:
     # the local cluster's workers each process a file at once; a scheduler's run on hosts only
     # process_many sees, which checks each file against its workers' share of their memory there
     if not args.scheduler:
-        _check_process_memory(args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores()))
+        try:  # it opens each file first: a reader's refusal in process's words
+            _check_process_memory(
+                args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores())
+            )
+        except ValueError as exc:
+            text = _process_error(str(exc), args)
+            if text == str(exc):
+                raise
+            raise ValueError(text) from exc
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)

@@ -2629,6 +2629,17 @@ def test_process_refusing_a_linked_experiment_names_no_option_it_does_not_have(o
     assert "radiokit process reads no data outside the experiment file" in res.stderr
 
 
+def test_process_refusing_another_layout_names_no_option_it_does_not_have(tmp_path):
+    """s46: process's refusal of an HDF5 file of another layout said "pass --dataset PATH", which
+    process refuses as an unrecognised argument: it reads experiment files only."""
+    path = tmp_path / "scan.h5"
+    with h5py.File(path, "w") as h5:
+        h5["data"] = np.zeros((3, 16, 20), np.uint16)
+    res = run_cli("process", path, "-o", tmp_path / "results")
+    one_line_error(res, "scan.h5", "/data (3x16x20 uint16)", "radiokit correct --dataset")
+    assert "pass --dataset" not in res.stderr
+
+
 def test_results_pair_that_does_not_exist_names_the_pairs_that_do():
     """``Results.pair("9->3")`` raised a bare StopIteration (inside a generator: a RuntimeError)."""
     record = Results.from_json(_results_json())
