@@ -15,6 +15,7 @@ import math
 import os
 import re
 import resource
+import struct
 import subprocess
 import sys
 
@@ -2638,6 +2639,17 @@ def test_process_refusing_another_layout_names_no_option_it_does_not_have(tmp_pa
     res = run_cli("process", path, "-o", tmp_path / "results")
     one_line_error(res, "scan.h5", "/data (3x16x20 uint16)", "radiokit correct --dataset")
     assert "pass --dataset" not in res.stderr
+
+
+@pytest.mark.parametrize("where, said", [(10**6, "lies beyond the end of the 16-byte file"), (0, "offset 0")])
+def test_a_tiff_whose_first_ifd_is_not_there_says_where_it_points(tmp_path, where, said):
+    """s46: a header pointing its first IFD past the end (a file cut short, a header rewritten)
+    said only "TIFF holds no image"; where it points tells a truncated file from an empty one."""
+    path = tmp_path / "cut.tif"
+    path.write_bytes(b"II*\0" + struct.pack("<I", where) + bytes(8))
+    for command in ("info", "register"):
+        args = (path, path, "-o", tmp_path / "r.h5") if command == "register" else (path,)
+        one_line_error(run_cli(command, *args), "cut.tif", "first IFD", said)
 
 
 def test_results_pair_that_does_not_exist_names_the_pairs_that_do():

@@ -60,7 +60,7 @@ from radiokit.io._ome import (
     tiffdata,
 )
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
-from radiokit.io._tiff_ifds import check_tiff_pages
+from radiokit.io._tiff_ifds import check_tiff_pages, no_pages_why
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
@@ -339,7 +339,7 @@ class FrameSource:
         self._tiff_walk = check_tiff_pages(self.path, self._budget)
         self._tif = _tiff_file(self.path)
         if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
-            raise FormatError(self.path, "TIFF holds no image")
+            raise FormatError(self.path, no_pages_why(self.path))
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
         self._pages, index = self._frame_pages(all_pages)
