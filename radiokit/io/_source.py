@@ -1027,7 +1027,7 @@ class FrameSource:
                 f"were they {math.prod(shape[:-2])} frames of {rows}x{cols}, write them with their axes "
                 "(metadata={'axes': 'ZYX'})",
                 UserWarning,
-                stacklevel=4,
+                stacklevel=5,  # the caller of read() / open_frames()
             )
             return None
         dtype = np.dtype(first.dtype).newbyteorder(self._tif.byteorder)
@@ -1487,7 +1487,7 @@ class FrameSource:
                     f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
                     "have no NaN to mark them with: read as stored",
                     UserWarning,
-                    stacklevel=5,
+                    stacklevel=6,  # the caller of read() / open_frames()
                 )
             return None
         if self._line is not None or self._invert is not None:
