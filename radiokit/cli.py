@@ -158,7 +158,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     spaced frames (``every``: all of them)."""
     from radiokit.calibrate import saturation_level
 
-    lo, hi, saturated, nonfinite = None, None, 0, 0
+    lo, hi, saturated, nonfinite, nonfinite_frames = None, None, 0, 0, 0
     n_read = len(src) if every else min(len(src), sample)
     # --all: a range, not an array of every index (a small file may declare 10**8 frames)
     picks = range(len(src)) if every else _spaced(len(src), n_read)
@@ -186,7 +186,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         frame = held.pop(int(i)) if int(i) in held else src[i]
         if frame.dtype.kind == "f":
             finite = np.isfinite(frame)
-            nonfinite += int(frame.size - np.count_nonzero(finite))
+            bad = int(frame.size - np.count_nonzero(finite))
+            nonfinite, nonfinite_frames = nonfinite + bad, nonfinite_frames + (bad > 0)
             frame = frame[finite]
         if frame.size:
             fmin, fmax = frame.min(), frame.max()
@@ -206,6 +207,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "saturation": top,
         "saturation_from": basis if top is not None else None,
         "nonfinite": nonfinite,
+        "nonfinite_frames": nonfinite_frames,
         "metadata": _summary(src.meta) | _stack_domain(src) | _assumed_pitch(src),
     }
 
@@ -316,7 +318,9 @@ def cmd_info(args) -> int:
         if rep["saturated"] is not None:
             print(f"  saturated  {rep['saturated']} pixel(s) >= {rep['saturation']} ({rep['saturation_from']}){of}")
         if rep["nonfinite"]:
-            print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf{of}")
+            k, read_ = rep["nonfinite_frames"], rep["frames_read"]
+            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frames"
+            print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {_escaped(value)}")
     return status
@@ -672,6 +676,11 @@ _EXTERNAL_HOW = {
     "copy the linked data into it first)",
     "is read with --allow-external (allow_external=True)": "is not read by radiokit process: copy the linked "
     "data into the file first",
+    # process has no --dataset either: it reads experiment files only (s46: it named the option)
+    "pass --dataset PATH (dataset= in Python) to read one": "radiokit process reads experiment files only "
+    "(radiokit correct --dataset PATH reads one)",
+    "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)": "(radiokit process "
+    "reads experiment files only; radiokit correct --dataset PATH reads another layout)",
 }
 
 
@@ -1010,7 +1019,15 @@ def cmd_process(args) -> int:
     # the local cluster's workers each process a file at once; a scheduler's run on hosts only
     # process_many sees, which checks each file against its workers' share of their memory there
     if not args.scheduler:
-        _check_process_memory(args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores()))
+        try:  # it opens each file first: a reader's refusal in process's words
+            _check_process_memory(
+                args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores())
+            )
+        except ValueError as exc:
+            text = _process_error(str(exc), args)
+            if text == str(exc):
+                raise
+            raise ValueError(text) from exc
     if single:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)

@@ -261,7 +261,7 @@ class Steps:
     numbers), with the step numbers, compression ratios, pixel size and the seconds spent;
     ``unknown`` maps a step number to where its frames held NaN or inf pixels (the correction
     filled them): ``(rows, cols)`` int32, the first such frame's index per pixel, -1 elsewhere
-    (only steps that held any), and ``nonfinite`` their count per frame, per step."""
+    (only steps that held any), and ``nonfinite`` per step (pixels, frames holding any, frames)."""
 
     images: np.ndarray
     numbers: tuple[int, ...]
@@ -560,8 +560,9 @@ def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
 
 def _step_image(cal, src, path, step, idx, factors, bar):
     """The line integral of one step's frames ``idx`` (each at the flats' tube current,
-    ``factors``), ``-ln`` of their mean transmission, and how many saturated pixels a frame held
-    on average, and how many NaN or inf ones (filled by the correction).
+    ``factors``), ``-ln`` of their mean transmission, and how many saturated pixels its frames
+    held, and how many NaN or inf ones (filled by the correction), each as (pixels, frames holding
+    any, frames): a per-frame average printed rounded said "0" of one such pixel in 4 frames.
 
     Why the transmissions are averaged, not the logs: the detector is linear in the dose, so N
     frames averaged are one N times longer exposure, and ``-ln`` of their mean is biased by
@@ -574,7 +575,7 @@ def _step_image(cal, src, path, step, idx, factors, bar):
     from radiokit.correct import check_above_dark, correct_frames
 
     domain = "log" if len(idx) == 1 else "linear"
-    acc, n_sat, n_bad, where = None, 0, 0, None
+    acc, sat, bad_n, where = None, [0, 0, len(idx)], [0, 0, len(idx)], None
     for i, factor in zip(idx, factors):
         raw = src[i]
         try:  # a frame with the beam off would pull its step's mean towards nothing
@@ -585,11 +586,12 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         if top is not None:  # +inf passes any level: no value, counted below as NaN or inf
             over = (raw >= top) & np.isfinite(raw) if raw.dtype.kind == "f" else raw >= top
             # defect pixels are filled, no measurement: a stuck one was "saturated" in every frame
-            n_sat += int(np.count_nonzero(over & (cal.mask == 0)))
+            n = int(np.count_nonzero(over & (cal.mask == 0)))
+            sat[0], sat[1] = sat[0] + n, sat[1] + (n > 0)
         if raw.dtype.kind == "f":
             bad = ~np.isfinite(raw)
             if bad.any():
-                n_bad += int(np.count_nonzero(bad))
+                bad_n[0], bad_n[1] = bad_n[0] + int(np.count_nonzero(bad)), bad_n[1] + 1
                 where = np.full(raw.shape, -1, np.int32) if where is None else where
                 where[bad & (where < 0)] = i
         try:  # its refusal names the frame (one of only NaN was "a raw frame" of dozens)
@@ -605,14 +607,14 @@ def _step_image(cal, src, path, step, idx, factors, bar):
         acc = image.astype(np.float64) if acc is None else acc + image
         bar.update()
     if domain == "log":
-        return acc.astype(np.float32), n_sat, n_bad, where
+        return acc.astype(np.float32), tuple(sat), tuple(bad_n), where
     # linear correction clamps raw - dark to half a count: every transmission and mean is > 0
-    return (-np.log(acc / len(idx))).astype(np.float32), n_sat / len(idx), n_bad / len(idx), where
+    return (-np.log(acc / len(idx))).astype(np.float32), tuple(sat), tuple(bad_n), where
 
 
 def _warn_per_step(path, counts: dict, what: str, advice: str) -> None:
-    """One line when projections hold pixels of unknown intensity (``counts``: per step, per
-    frame): saturated ones (a lower bound) or NaN/inf ones (another lab's float frames mark masked
+    """One line when projections hold pixels of unknown intensity (``counts``: per step, (pixels,
+    frames holding any, frames)): saturated ones (a lower bound) or NaN/inf ones (another lab's float frames mark masked
     regions and detector gaps so; the correction fills them from their neighbours). Why: a ROI or
     a registration that leans on them measures the ADC or the fill, not the object, and nothing
     said so."""
@@ -620,11 +622,11 @@ def _warn_per_step(path, counts: dict, what: str, advice: str) -> None:
 
     from radiokit.calibrate import CalibrationWarning
 
-    if any(n > 0 for n in counts.values()):
-        per_step = ", ".join(f"step {s}: {n:.0f}" for s, n in counts.items() if n > 0)
-        warnings.warn(
-            f"{path}: {what} in the projections, per frame ({per_step}): {advice}", CalibrationWarning, stacklevel=4
+    if any(n > 0 for n, _, _ in counts.values()):
+        per_step = ", ".join(
+            f"step {s}: {n} in {k} of {m} frame{'s' if m > 1 else ''}" for s, (n, k, m) in counts.items() if n > 0
         )
+        warnings.warn(f"{path}: {what} in the projections ({per_step}): {advice}", CalibrationWarning, stacklevel=4)
 
 
 def _warn_saturated(path, saturated: dict, level) -> None:

@@ -603,7 +603,10 @@ def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
                 raw[10:30, 20:40] = 4095
                 raw[50, 5:8] = 4095
                 w.append(raw, image_key=ImageKey.PROJECTION, step=step)
-    with pytest.warns(CalibrationWarning, match=r"saturated pixels \(>= 4095\).*step 1: 400, step 2: 400"):
+    with pytest.warns(
+        CalibrationWarning,
+        match=r"saturated pixels \(>= 4095\).*step 1: 800 in 2 of 2 frames, step 2: 800 in 2 of 2 frames",
+    ):
         load_steps(path)
 
 

@@ -584,7 +584,7 @@ def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
     pixels, and the NaN or inf ones are counted."""
     frame = np.arange(20, dtype=np.float32).reshape(4, 5)
     frame[0, 0], frame[1, 1], frame[2, 2] = np.nan, np.inf, -np.inf
-    stack = _write_stack(tmp_path / "f.tif", [frame, np.full((4, 5), np.nan)])
+    stack = _write_stack(tmp_path / "f.tif", [frame, np.full((4, 5), np.nan), np.ones((4, 5), np.float32)])
     res = run_cli("info", "--json", stack)
     assert res.returncode == 0, res.stderr
 
@@ -592,9 +592,9 @@ def test_info_json_is_json_for_frames_with_nan_and_inf(tmp_path):
         raise ValueError(f"not JSON: {constant}")
 
     rep = json.loads(res.stdout, parse_constant=refuse)[0]
-    assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20
-    res = run_cli("info", stack)
-    assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel", res.stdout), res.stdout
+    assert rep["range"] == [1.0, 19.0] and rep["nonfinite"] == 3 + 20 and rep["nonfinite_frames"] == 2
+    res = run_cli("info", stack)  # s46: the count, and how many frames hold them
+    assert res.returncode == 0 and re.search(r"nonfinite\s+23 pixel\(s\) NaN or inf in 2 of 3 frames", res.stdout)
 
 
 def test_calibrate_names_the_file_whose_frames_differ_in_shape(tmp_path):

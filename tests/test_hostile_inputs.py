@@ -15,6 +15,7 @@ import math
 import os
 import re
 import resource
+import struct
 import subprocess
 import sys
 
@@ -590,10 +591,36 @@ def test_process_says_how_many_nan_pixels_it_filled_in_the_projections(tmp_path)
         del h5["entry/instrument/detector/data"]
         h5["entry/instrument/detector/data"] = frames
     with pytest.warns(
-        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections, per frame \(step 2: 20\)"
+        CalibrationWarning, match=r"exp.h5: NaN or inf pixels in the projections \(step 2: 20 in 1 of 1 frame\)"
     ):
         steps = load_steps(path)
     assert all(np.isfinite(image).all() for image in steps.images)
+
+
+def test_process_counts_every_nan_pixel_and_the_frames_holding_them(tmp_path):
+    """s46: the count was a per-frame average, printed rounded: 3 NaN pixels in one of a step's 4
+    frames read "step 2: 1", one alone "step 2: 0" (a warning of nothing). The true count, and
+    how many of the step's frames hold them."""
+    from radiokit.calibrate import CalibrationWarning
+    from radiokit.pipeline import load_steps
+
+    shape, rng = (32, 40), np.random.default_rng(3)
+    path = tmp_path / "exp.h5"
+    with ExperimentWriter(path, shape=shape) as w:
+        for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3000)):
+            for _ in range(3):
+                w.append(rng.integers(level - 10, level + 10, shape), image_key=key)
+        for s in (1, 2):
+            for _ in range(4):
+                w.append(rng.integers(900, 1100, shape), image_key=ImageKey.PROJECTION, step=s)
+    with h5py.File(path, "a") as h5:
+        frames = h5["entry/instrument/detector/data"][()].astype(np.float32)
+        frames[6 + 4 + 1, 3, 4:7] = np.nan  # step 2's second frame: 3 pixels
+        frames[6 + 4 + 3, 20, 20] = np.inf  # and its fourth: 1
+        del h5["entry/instrument/detector/data"]
+        h5["entry/instrument/detector/data"] = frames
+    with pytest.warns(CalibrationWarning, match=r"exp.h5: NaN or inf pixels .*\(step 2: 4 in 2 of 4 frames\)"):
+        load_steps(path)
 
 
 def test_a_frame_of_only_nan_is_refused(tmp_path):
@@ -2601,6 +2628,28 @@ def test_process_refusing_a_linked_experiment_names_no_option_it_does_not_have(o
     one_line_error(res, path.name, "external link")
     assert "--allow-external" not in res.stderr and "allow_external=True" not in res.stderr
     assert "radiokit process reads no data outside the experiment file" in res.stderr
+
+
+def test_process_refusing_another_layout_names_no_option_it_does_not_have(tmp_path):
+    """s46: process's refusal of an HDF5 file of another layout said "pass --dataset PATH", which
+    process refuses as an unrecognised argument: it reads experiment files only."""
+    path = tmp_path / "scan.h5"
+    with h5py.File(path, "w") as h5:
+        h5["data"] = np.zeros((3, 16, 20), np.uint16)
+    res = run_cli("process", path, "-o", tmp_path / "results")
+    one_line_error(res, "scan.h5", "/data (3x16x20 uint16)", "radiokit correct --dataset")
+    assert "pass --dataset" not in res.stderr
+
+
+@pytest.mark.parametrize("where, said", [(10**6, "lies beyond the end of the 16-byte file"), (0, "offset 0")])
+def test_a_tiff_whose_first_ifd_is_not_there_says_where_it_points(tmp_path, where, said):
+    """s46: a header pointing its first IFD past the end (a file cut short, a header rewritten)
+    said only "TIFF holds no image"; where it points tells a truncated file from an empty one."""
+    path = tmp_path / "cut.tif"
+    path.write_bytes(b"II*\0" + struct.pack("<I", where) + bytes(8))
+    for command in ("info", "register"):
+        args = (path, path, "-o", tmp_path / "r.h5") if command == "register" else (path,)
+        one_line_error(run_cli(command, *args), "cut.tif", "first IFD", said)
 
 
 def test_results_pair_that_does_not_exist_names_the_pairs_that_do():

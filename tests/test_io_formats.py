@@ -2,6 +2,7 @@
 TIFF and ITEX variants. Every check compares the pixels read with the array written, value by
 value and in the same orientation (rows, columns), not only that the file opens."""
 
+import math
 import os
 import re
 import subprocess
@@ -1346,6 +1347,50 @@ def test_a_4d_tiff_series_is_read_flat_and_info_says_so(tmp_path, kw):
     assert res.returncode == 0 and "read flat" in res.stdout and "2 x 5" in res.stdout, res.stdout
 
 
+@pytest.mark.parametrize(
+    "shape, axes",
+    [((5, 30, 1), "ZYX"), ((5, 1, 30), "ZYX"), ((2, 3, 30, 1), "TZYX"), ((4, 1, 1), "TYX")],
+)
+def test_a_tifffile_stack_of_one_column_frames_reads_as_its_frames(tmp_path, shape, axes):
+    """s46: tifffile drops an array's trailing 1s from the pages it stores, so (5, 30, 1) frames
+    of one column, axes "ZYX", are one 5 x 30 page: read as one 5 x 30 frame, transposed and
+    without its 5 frames. The axes its description gives say which are rows and columns."""
+    frames = _frames(math.prod(shape[:-2]), *shape[-2:])
+    path = tmp_path / "columns.tif"
+    kw = {"metadata": {"axes": axes}, "photometric": "minisblack"}  # (a 3 or 4 before YX is no RGB)
+    tifffile.imwrite(path, frames.reshape(shape), **kw)
+    np.testing.assert_array_equal(read(path).data, frames)
+    np.testing.assert_array_equal(read(path, n=2).data, frames[:2])
+    # compressed, its pages are not runs of frames read one at a time: refused, never misread
+    tifffile.imwrite(path, frames.reshape(shape), compression="zlib", **kw)
+    if shape[-1] == 1:
+        with pytest.raises(FormatError, match=rf"columns\.tif: .*{shape[-2]}x1 .*compressed"):
+            read(path)
+        with tifffile.TiffWriter(path) as tif:  # a series per write, each of such frames
+            for _ in range(2):
+                tif.write(frames.reshape(shape), **kw)
+        with pytest.raises(FormatError, match=r"columns\.tif: .*several such series"):
+            read(path)
+
+
+@pytest.mark.parametrize("axes", [None, "YXS"])
+def test_a_tifffile_image_of_one_trailing_sample_still_reads_as_one_frame(tmp_path, axes):
+    """An (rows, cols, 1) image (a channel axis of one) is one frame, as tifffile's own axes
+    (YXQ, YXS) say; without axes, the one line says how a stack of one-column frames is told."""
+    image = _frames(1)[0]
+    path = tmp_path / "image.tif"
+    tifffile.imwrite(path, image[..., None], **({"metadata": {"axes": axes}} if axes else {}))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = read(path)
+    np.testing.assert_array_equal(got.data, image[None])
+    said = [str(w.message) for w in caught]
+    if axes is None:
+        assert any("image.tif" in s and "(30, 40, 1)" in s and "axes" in s for s in said), said
+    else:
+        assert not said, said
+
+
 @needs_itex
 @pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
 def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):
@@ -1664,6 +1709,23 @@ def test_a_dataset_hint_naming_a_group_names_the_frames_it_holds(tmp_path):
         read(path, dataset="entry/data")
     with pytest.raises(FormatError, match="no dataset 'entry/nothing'"):
         read(path, dataset="entry/nothing")
+
+
+def test_one_dataset_hint_for_inputs_of_two_layouts_names_the_file_lacking_it(tmp_path):
+    """s46: ``--dataset`` is one path read from every input: files of one layout (a beamline's
+    scans) take it alike. The file that lacks it is named with the path, and with the frames it
+    does hold, so that the user sees the layouts differ (it said only "no dataset 'scan/data'")."""
+    darks = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for path, where in zip(darks, ("scan/data", "entry/data")):
+        with h5py.File(path, "w") as f:
+            f[where] = _frames(3, 16, 20)
+    with h5py.File(tmp_path / "flat.h5", "w") as f:
+        f["scan/data"] = _frames(3, 16, 20) + 3000
+    res = run_cli(
+        "calibrate", "--dark", *darks, "--flat", tmp_path / "flat.h5", "--dataset", "scan/data", "-o", tmp_path / "c.h5"
+    )
+    one_line_error(res, "b.h5", "no dataset 'scan/data'", "/entry/data (3x16x20 uint16)")
+    assert not (tmp_path / "c.h5").exists()
 
 
 def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
@@ -2906,6 +2968,42 @@ def test_a_micromanager_index_map_declaring_more_than_its_file_is_refused_withou
     )
     res = subprocess.run([sys.executable, "-c", code, "info", str(path)], capture_output=True, text=True, timeout=120)
     one_line_error(res, path.name, said)
+
+
+def _gdal_tiff(path, data, items, nodata=None):
+    """A TIFF as GDAL writes one: GDAL_METADATA (42112) XML items, GDAL_NODATA (42113) text."""
+    xml = "<GDALMetadata>" + "".join(
+        f'<Item name="{name}" sample="0" role="{name.lower()}">{value}</Item>' for name, value in items.items()
+    )
+    tags = [(42112, "s", 0, xml + "</GDALMetadata>", True)]
+    if nodata is not None:
+        tags.append((42113, "s", 0, str(nodata), True))
+    tifffile.imwrite(path, data, extratags=tags, photometric="minisblack")
+    return path
+
+
+@pytest.mark.parametrize("dtype", ["u2", "f4"])
+def test_a_gdal_tiff_reads_its_scale_and_offset_and_nodata_as_gdal_does(tmp_path, dtype):
+    """s46: GDAL's SCALE and OFFSET (value = stored * scale + offset, as an HDF5 file's CF packing)
+    and its NODATA code were ignored: every pixel read as the stored count, a silent wrong value."""
+    stored = _frames(2, 20, 30).astype(dtype)
+    stored[1, 3, 4:7] = 7  # the nodata code
+    path = _gdal_tiff(tmp_path / "g.tif", stored, {"SCALE": 0.25, "OFFSET": -100}, nodata=7)
+    got = read(path)
+    expected = stored.astype(np.float64) * 0.25 - 100
+    expected[stored == 7] = np.nan
+    assert got.data.dtype.kind == "f"
+    np.testing.assert_allclose(got.data, expected, rtol=1e-6, equal_nan=True)
+    assert got.meta["gdal_scaling"] == {"scale": 0.25, "offset": -100.0, "nodata": 7.0}
+
+
+@pytest.mark.parametrize("items", [{"SCALE": 0}, {"SCALE": "nan"}, {"OFFSET": "abc"}])
+def test_a_gdal_tiff_of_unusable_scaling_is_refused_in_one_line(tmp_path, items):
+    path = _gdal_tiff(tmp_path / "g.tif", _frames(1, 20, 30), items)
+    with pytest.raises(FormatError, match=r"g\.tif: GDAL_METADATA's (SCALE|OFFSET) is .*needs a finite number"):
+        read(path)
+    if "OFFSET" in items:  # (one command line: the same refusal)
+        one_line_error(run_cli("info", path), "g.tif", "GDAL")
 
 
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):

@@ -60,7 +60,7 @@ from radiokit.io._ome import (
     tiffdata,
 )
 from radiokit.io._raw import _frame_count, raw_geometry, read_raw_frame
-from radiokit.io._tiff_ifds import check_tiff_pages
+from radiokit.io._tiff_ifds import check_tiff_pages, no_pages_why
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
@@ -339,7 +339,7 @@ class FrameSource:
         self._tiff_walk = check_tiff_pages(self.path, self._budget)
         self._tif = _tiff_file(self.path)
         if not len(self._tif.pages):  # (not tifffile's series: it divides by a page's width or height)
-            raise FormatError(self.path, "TIFF holds no image")
+            raise FormatError(self.path, no_pages_why(self.path))
         # OME files come as TiffFrames (an IFD's offsets only); checking a page needs its tags
         all_pages = [page.aspage() for page in self._tif.pages]
         self._pages, index = self._frame_pages(all_pages)
@@ -358,7 +358,7 @@ class FrameSource:
                     "or not one stack of frames",
                 )
         self._check_ifd_chain(all_pages)
-        self._contiguous = self._contiguous_stack(first, all_pages)
+        self._contiguous = self._trimmed_stack(first, self._pages) or self._contiguous_stack(first, all_pages)
         self._warn_unread()
         self._words = 0  # the bytes of a word (1, 2) holding each pixel that BitsPerSample says is fewer bits
         for i, page in enumerate(self._pages):
@@ -380,7 +380,7 @@ class FrameSource:
         if self._words:
             self.dtype = np.dtype(f"u{self._words}")
         if self._contiguous:
-            self.n = self._contiguous["n"]
+            self.n, self.frame_shape = self._contiguous["n"], (self._contiguous["rows"], self._contiguous["cols"])
             self._contiguous["dtype"] = self.dtype.newbyteorder(self._tif.byteorder)
         if self._contiguous and first.bitspersample % 8 and not self._words:
             raise FormatError(
@@ -389,11 +389,8 @@ class FrameSource:
             )
         self.bits = self._words_read(first)
         self._stored_shape = self.frame_shape
-        self._invert = self._tiff_inversion(first)
-        self._line = self._imagej_calibration(first)
+        self._tiff_values(first)
         self._orientation = self._tiff_orientation(first)
-        if self._line is not None:
-            self.dtype = self._line[2]
         if self._orientation >= 5:  # the transposing orientations swap rows and columns
             self.frame_shape = self.frame_shape[::-1]
         self._tiff_meta(first)
@@ -421,6 +418,8 @@ class FrameSource:
                 series = []
             if len(series) == 1 and series[0].kind == "mmstack" and series[0].axes[-2:] == "YX":
                 shape, axes = tuple(series[0].shape[:-2]), series[0].axes[:-2]
+        elif tif.is_shaped and "axes" in (self._contiguous or {}):  # frames of one column (_trimmed_stack)
+            shape, axes = self._contiguous["shape"][:-2], self._contiguous["axes"][:-2]
         elif tif.is_shaped:
             series = _shaped_series(self._pages)
             if len(series) == 1 and len(series[0][0]) > 2:
@@ -1003,6 +1002,46 @@ class FrameSource:
                 f"TIFF IFD after page {len(pages) - 1} (offset {following}) is not a readable IFD: corrupt",
             )
 
+    def _trimmed_stack(self, first, pages) -> dict | None:
+        """The geometry of frames of one column (or one pixel) tifffile stored as fewer, larger
+        pages, else None. Why: tifffile drops an array's trailing 1s from the pages it writes, so
+        five 30 x 1 frames, axes "ZYX", fill one 5 x 30 page: read as the page, one frame,
+        transposed. The axes its writer gave say which are rows and columns; without any, tifffile's
+        own (YXQ: a channel of one) make the page an image, read so and said (an (H, W, 1) array is
+        far more often an image with a channel axis than frames of one column). The frames are read
+        as raw frames where the pages are one uncompressed run, as tifffile writes them."""
+        shape, axes = _trimmed_description(first)
+        if shape is None or self._tif.is_imagej:
+            return None
+        rows, cols = shape[-2:]
+        what = f"its tifffile description says {math.prod(shape[:-2])} frames of {rows}x{cols} (axes {axes})"
+        if axes and any(page.shaped_description for page in pages[1:]):  # a series per write
+            raise FormatError(self.path, f"{what} in a TIFF of several such series (one per write): not read")
+        if math.prod(shape) != len(pages) * math.prod(first.shape):
+            return None
+        if axes is None:
+            warnings.warn(
+                f"{self.path}: its tifffile description says shape {tuple(shape)} without axes: read as "
+                f"{len(pages)} frame(s) of {first.shape[0]}x{first.shape[1]}, as tifffile takes its axes "
+                "(a trailing 1 a channel); "
+                f"were they {math.prod(shape[:-2])} frames of {rows}x{cols}, write them with their axes "
+                "(metadata={'axes': 'ZYX'})",
+                UserWarning,
+                stacklevel=5,  # the caller of read() / open_frames()
+            )
+            return None
+        dtype = np.dtype(first.dtype).newbyteorder(self._tif.byteorder)
+        offset, size = int(first.dataoffsets[0]), math.prod(first.shape) * dtype.itemsize
+        for k, page in enumerate(pages):
+            if page.compression != 1 or not page.is_contiguous or int(page.dataoffsets[0]) != offset + k * size:
+                raise FormatError(
+                    self.path,
+                    f"{what}, stored {first.shape[0]}x{first.shape[1]} to a page and compressed or scattered, "
+                    "which radiokit does not split: write them uncompressed, or a page per frame",
+                )
+        self._fh = open(self.path, "rb")
+        return dict(n=math.prod(shape[:-2]), rows=rows, cols=cols, dtype=dtype, offset=offset, shape=shape, axes=axes)
+
     def _contiguous_stack(self, first, pages) -> dict | None:
         """The geometry of a stack stored after a single IFD, else None.
 
@@ -1287,6 +1326,8 @@ class FrameSource:
             c0, c1, dtype = self._line
             frame = (frame.astype(np.int32) + int(c0)) if dtype == np.int16 else (c0 + c1 * frame.astype(np.float64))
             frame = frame.astype(dtype)
+        if self._packing is not None:  # (never with the two above: _gdal_packing refuses them)
+            frame = _unpack(frame, self._packing, frame)
         return _ORIENT[self._orientation](frame)
 
     def _read_segments(self, i) -> np.ndarray:
@@ -1416,6 +1457,49 @@ class FrameSource:
             return c0, c1, np.dtype(np.int16)
         return c0, c1, np.dtype(np.float32)
 
+    def _tiff_values(self, first) -> None:
+        """What the stored values are turned into as read: MinIsWhite inverted, ImageJ's density
+        calibration or GDAL's scaling applied (each refuses another with it), and the type read."""
+        self._invert = self._tiff_inversion(first)
+        self._line = self._imagej_calibration(first)
+        self._packing = self._gdal_packing(first)
+        if self._line is not None:
+            self.dtype = self._line[2]
+        if self._packing is not None:
+            self.dtype = self._packing["dtype"]
+
+    def _gdal_packing(self, page) -> dict | None:
+        """GDAL's scaling of the stored values, as :func:`_unpack` applies an HDF5 file's CF
+        packing: ``value = stored * SCALE + OFFSET`` (GDAL_METADATA's band-1 items) and NODATA
+        (GDAL_NODATA) missing, NaN; None where GDAL gives neither, or only a NODATA code for
+        integer pixels (which have no NaN to mark it with: said). Why: read as stored, GDAL's
+        calibrated values were their raw counts, silently."""
+        xml, nodata = page.tags.valueof(42112), page.tags.valueof(42113)
+        found = _gdal_items(self.path, xml) if xml else {}
+        if nodata is not None:
+            try:
+                found["nodata"] = float(str(nodata).strip())
+            except ValueError:
+                raise FormatError(self.path, f"GDAL_NODATA {str(nodata)[:40]!r} is no number") from None
+        if not found or (set(found) == {"nodata"} and np.dtype(page.dtype).kind != "f"):
+            if found:
+                warnings.warn(
+                    f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
+                    "have no NaN to mark them with: read as stored",
+                    UserWarning,
+                    stacklevel=6,  # the caller of read() / open_frames()
+                )
+            return None
+        if self._line is not None or self._invert is not None:
+            raise FormatError(self.path, "TIFF is GDAL-scaled and ImageJ-calibrated or MinIsWhite: ambiguous")
+        self.meta["gdal_scaling"] = {"scale": 1.0, "offset": 0.0} | found
+        return {
+            "scale_factor": found.get("scale", 1.0),
+            "add_offset": found.get("offset", 0.0),
+            "dtype": np.result_type(np.float32, np.dtype(page.dtype)),
+            "missing": np.array([found["nodata"]]) if "nodata" in found else np.empty(0),
+        }
+
     def _tiff_orientation(self, page) -> int:
         """TIFF's Orientation (1..8), applied as a viewer does; 1 (row 0 at the top, column 0 at
         the left) when absent."""
@@ -1446,7 +1530,9 @@ class FrameSource:
                     self.path, f"no dataset {dataset!r}: a group" + (f", holding {listed}" if listed else "")
                 )
             if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
-                raise FormatError(self.path, f"no dataset {dataset!r}")
+                # one --dataset is read from every input: a file of another layout says what it holds
+                listed = frame_candidates(self._h5)
+                raise FormatError(self.path, f"no dataset {dataset!r}" + (f"; it holds {listed}" if listed else ""))
             if self._h5[dataset].ndim not in (2, 3):
                 raise FormatError(
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
@@ -2001,6 +2087,53 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
             return []
         found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
     return found
+
+
+def _gdal_items(path, xml: str) -> dict:
+    """``scale`` and ``offset`` of band 1 (sample 0) in GDAL_METADATA's XML, those it gives:
+    finite numbers, the scale not 0 (every pixel would read as the offset)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(str(xml))
+    except ET.ParseError as exc:
+        raise FormatError(path, f"GDAL_METADATA is no XML ({exc})") from None
+    found = {}
+    for item in root.iter("Item"):
+        role = (item.get("role") or item.get("name") or "").lower()
+        if role in ("scale", "offset") and item.get("sample", "0") == "0":
+            try:
+                value = float((item.text or "").strip())
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value) or (role == "scale" and value == 0):
+                raise FormatError(
+                    path,
+                    f"GDAL_METADATA's {role.upper()} is {item.text!r}: GDAL's scaling needs a finite number"
+                    + (", not 0" if role == "scale" else ""),
+                )
+            found[role] = value
+    return found
+
+
+def _trimmed_description(page) -> tuple[list | None, str | None]:
+    """The shape and axes (None where it gives none) a tifffile description on ``page`` declares
+    where tifffile stored it without its trailing 1s (the page is the shape's last two left),
+    else (None, None). Axes naming a samples axis (S) are an image's, also (None, None)."""
+    try:
+        meta = strict_json.loads(page.shaped_description or "")
+        shape = [int(v) for v in meta["shape"]]
+        axes = meta.get("axes")
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        return None, None
+    trimmed = list(shape)
+    while len(trimmed) > 2 and trimmed[-1] == 1:
+        trimmed.pop()
+    if len(trimmed) == len(shape) or tuple(trimmed[-2:]) != tuple(page.shape) or min(shape) < 1:
+        return None, None
+    if not isinstance(axes, str) or len(axes) != len(shape):
+        return shape, None
+    return (shape, axes) if axes[-2:] == "YX" else (None, None)
 
 
 def _nexus_signal(h5: h5py.File) -> tuple[str | None, str | None]:

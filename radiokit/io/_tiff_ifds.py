@@ -13,12 +13,13 @@ chain leading back after more than 100 IFDs was followed until memory ran out (a
 from __future__ import annotations
 
 import mmap
+import os
 import struct
 
 from radiokit.errors import FormatError
 from radiokit.io._budget import BUDGET_ENV, human_bytes, memory_budget
 
-__all__ = ["check_tiff_pages", "TIFF_BYTES_PER_PAGE", "TIFF_BYTES_PER_TAG"]
+__all__ = ["check_tiff_pages", "no_pages_why", "TIFF_BYTES_PER_PAGE", "TIFF_BYTES_PER_TAG"]
 
 #: memory a TIFF page costs open, beyond its tags' (benchmarks/bench_tiff_pages.py: `radiokit info`'s
 #: peak over 5,000 and 20,000 one-pixel pages of 8, 40 and 136 tags, 849 bytes a page and 227 a tag),
@@ -95,3 +96,20 @@ def check_tiff_pages(path, budget=None, spent=0, offsets: list | None = None) ->
         if offsets is not None:
             offsets.extend(seen)
         return len(seen), cost
+
+
+def no_pages_why(path) -> str:
+    """Why a TIFF in which tifffile found no page holds none, from where its header points its
+    first IFD: nowhere (offset 0), past the end (a file cut short), or to an IFD tifffile could
+    not read. Why: "holds no image" alone did not tell a truncated file from an empty one."""
+    with open(path, "rb") as fh:
+        head, size = fh.read(16), os.fstat(fh.fileno()).st_size
+    first = _first_ifd(head)
+    if first is None:
+        return "TIFF holds no image"
+    offset = first[2]
+    if offset == 0:
+        return "TIFF holds no image: its header puts its first IFD at offset 0 (none written)"
+    if offset >= size:
+        return f"TIFF holds no image: its first IFD (offset {offset}) lies beyond the end of the {size}-byte file: truncated or corrupt"
+    return f"TIFF holds no image: its first IFD (offset {offset}) cannot be read: corrupt"
