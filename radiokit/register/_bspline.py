@@ -828,9 +828,11 @@ def bspline_register(fixed, moving, mask=None, **options):
     a 60-iteration level on two cores). OpenCV too: its calls run inside the row bands, which
     are the parallelism; with its own pool each remap of a band cost two cores' CPU time
     (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
+    import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS, so that the limit below reaches it)
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
+    # OpenCV first: its import loads its own OpenBLAS, which a limit set before it does not reach
+    with _opencv_threads(1), threadpool_limits(limits=1, user_api="blas"):
         return _bspline_register(fixed, moving, mask, **options)
 
 
