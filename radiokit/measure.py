@@ -22,9 +22,11 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage as ndi
 
 from radiokit.checks import image_hint, is_number, refuse_masked
+
+# scipy.ndimage is imported in the functions that use it: radiokit.pipeline imports this module, and
+# `radiokit process` refused on its command line or its output (no frame read) need not load scipy
 
 __all__ = [
     "ROI",
@@ -1079,6 +1081,8 @@ def body_mask(image, *, fraction: float = 0.2, erode_px: int = 2) -> np.ndarray:
 
 
 def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:
+    from scipy import ndimage as ndi
+
     if not 0 < fraction < 1:
         raise ValueError(f"fraction must be in (0, 1), got {fraction!r}")
     lo, hi = float(img.min()), float(img.max())
@@ -1100,6 +1104,8 @@ def _body(img: np.ndarray, fraction: float, erode_px: int) -> np.ndarray:
 
 
 def _largest_component(mask: np.ndarray) -> np.ndarray:
+    from scipy import ndimage as ndi
+
     labels, n = ndi.label(mask)
     if n <= 1:
         return mask
@@ -1108,12 +1114,16 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 
 def _bbox(mask: np.ndarray) -> ROI:
     """The bounding box of a non-empty boolean mask."""
+    from scipy import ndimage as ndi
+
     rows, cols = ndi.find_objects(mask.astype(np.uint8))[0]
     return ROI(rows.start, rows.stop, cols.start, cols.stop)
 
 
 def _inscribed_square(region: np.ndarray, shrink: float) -> ROI:
     """The largest square inside ``region`` (chessboard distance), shrunk about its centre."""
+    from scipy import ndimage as ndi
+
     cdt = ndi.distance_transform_cdt(np.pad(region, 1), metric="chessboard")[1:-1, 1:-1]
     d = int(cdt.max())  # the (2d-1) x (2d-1) square centred on a pixel with cdt == d fits
     cand = np.argwhere(cdt == d)
@@ -1185,6 +1195,8 @@ def _clutter(resid: np.ndarray, ring: np.ndarray, n_core: int) -> float:
     too small and the texture's strongest bump "stood 8 standard errors" above it (a
     near-uniform phantom with 1 % thickness ripple under noise got an invented inclusion). Means
     over squares of the core's area, of ring pixels only (normalised by the ring's share)."""
+    from scipy import ndimage as ndi
+
     side = max(1, int(round(np.sqrt(n_core))))
     w = ndi.uniform_filter(ring.astype(np.float64), side, mode="constant")
     m = ndi.uniform_filter(np.where(ring, resid, 0.0), side, mode="constant")
@@ -1230,6 +1242,7 @@ def _detect_blobs(img: np.ndarray, body: np.ndarray, pixel_size_mm) -> tuple[np.
     per-scale mask of the body's edge, and on a once-averaged image it is slower and moves the
     demo's ROI (``benchmarks/bench_detect.py``; numbers in ``benchmarks/README.md``).
     """
+    from scipy import ndimage as ndi
     from skimage.measure import block_reduce
 
     if img.max() < 0:  # negative intensities (-I/I0, -counts): detect on line integrals + const
@@ -1317,6 +1330,8 @@ def _half_maximum(fit, radius: float, shape) -> np.ndarray:
 def _half_maximum_window(fit, radius: float, keep=None):
     """:func:`_half_maximum` over the fit's window only, as (region, its origin); pixels outside
     ``keep`` (the window's share of a mask) are never in it."""
+    from scipy import ndimage as ndi
+
     resid, origin, dist = fit
     resid = ndi.gaussian_filter(resid, max(1.0, radius / 8), mode="nearest")
     core = dist <= max(0.5, 1.0 / radius)

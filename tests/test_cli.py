@@ -833,6 +833,73 @@ def test_process_refuses_a_slip_before_loading_the_pipeline(tmp_path):
     assert loaded == [], loaded
 
 
+#: a fresh interpreter's `radiokit` run on each command line of argv[1] (stdout dropped): the exit
+#: codes, and which of the heavy packages it imported
+_IMPORTS_OF_COMMANDS = """
+import contextlib, io, json, sys
+from radiokit.cli import main
+codes = []
+for argv in json.loads(sys.argv[1]):
+    with contextlib.redirect_stdout(io.StringIO()):
+        try:
+            codes.append(main(argv))
+        except SystemExit as exc:  # --help
+            codes.append(exc.code)
+heavy = {"scipy", "numba", "llvmlite", "matplotlib", "cv2", "skimage", "dask", "distributed"}
+print(json.dumps([codes, sorted(heavy & {m.split(".")[0] for m in sys.modules})]))
+"""
+
+
+def test_help_and_refusals_import_no_scipy_numba_or_matplotlib(tmp_path):
+    """Each command's --help, and a command line or input refused in one line, take the start-up
+    only: register's refusals imported scipy with radiokit.register, and process's (an output
+    that exists, an ROI or --k that Config refuses) scipy with radiokit.pipeline and Config's
+    check of the method's options, ~0.3-0.8 CPU s before the line (session 46). A process of its
+    own: what it imported is the point."""
+    import tifffile
+
+    image, exp, res = tmp_path / "a.tif", tmp_path / "exp.h5", tmp_path / "res"
+    tifffile.imwrite(image, np.zeros((16, 16), np.uint16))
+    exp.write_bytes(b"not read")
+    res.mkdir()
+    helps = [[*cmd, "--help"] for cmd in (["info"], ["calibrate"], ["correct"], ["register"], ["process"])]
+    refusals = [
+        ["correct", tmp_path / "missing.tif", "-o", tmp_path / "out.h5"],
+        ["register", image, tmp_path / "missing.tif", "-o", tmp_path / "reg.h5"],
+        ["register", image, image, "-o", tmp_path / "reg.h5"],
+        ["process", exp, "-o", res],
+        ["process", exp, "-o", tmp_path / "res2", "--k", "0"],
+        [
+            "process",
+            exp,
+            "-o",
+            tmp_path / "res2",
+            "--inclusion",
+            "0",
+            "4",
+            "0",
+            "4",
+            "--background",
+            "0",
+            "4",
+            "0",
+            "4",
+        ],
+    ]
+    argv = json.dumps([[str(a) for a in cmd] for cmd in helps + refusals])
+    res = subprocess.run(
+        [sys.executable, "-c", _IMPORTS_OF_COMMANDS, argv],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert res.returncode == 0, res.stderr
+    codes, loaded = json.loads(res.stdout)
+    assert codes == [0] * len(helps) + [2] * len(refusals), res.stderr
+    assert res.stderr.count("\n") == len(refusals), res.stderr  # one line each
+    assert loaded == [], loaded
+
+
 def test_run_cli_leaves_this_process_as_it_found_it(tmp_path):
     """conftest.run_cli runs main in the test's process: what main changes (its SIGTERM, SIGHUP, SIGQUIT
     handlers, tifffile's log level, the warnings' format) and what run_cli sets for it (the

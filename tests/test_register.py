@@ -60,8 +60,44 @@ def _as_register_runs_it():
     against 2.9 s). Tests that only want the info call ``B.bspline_register``."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"), B._opencv_threads(1):
+    with B._opencv_threads(1), threadpool_limits(limits=1, user_api="blas"):
         yield
+
+
+# bspline_register in a fresh interpreter, its work replaced by a probe that imports scipy's
+# minimiser as the work does and reports each BLAS library's threads
+_BLAS_THREADS_INSIDE = """
+import json
+from threadpoolctl import threadpool_info
+from radiokit.register import _bspline as B
+
+def probe(*args, **options):
+    import scipy.optimize  # noqa: F401  (as _fit_level imports it, inside the limit)
+
+    return [(info["filepath"], info["num_threads"]) for info in threadpool_info() if info["user_api"] == "blas"]
+
+B._bspline_register = probe
+print(json.dumps(B.bspline_register(None, None)))
+"""
+
+
+def test_register_holds_scipys_blas_to_one_thread_when_scipy_is_not_yet_loaded():
+    """scipy is imported where the registration uses it (session 46: importing radiokit.register
+    loads no scipy); threadpoolctl limits only the libraries loaded when the limit is set, and
+    scipy's own OpenBLAS, loaded with scipy's minimiser inside it, ran with its spinning threads
+    (L-BFGS's small matrix calls: twice the CPU). A process of its own, without the suite's
+    OPENBLAS_NUM_THREADS=1: what was loaded when is the point."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    res = subprocess.run([sys.executable, "-c", _BLAS_THREADS_INSIDE], capture_output=True, text=True, env=env)
+    assert res.returncode == 0, res.stderr
+    threads = dict(json.loads(res.stdout))
+    assert any("scipy_openblas-" in path for path in threads), threads  # scipy's (numpy's is openblas64_)
+    assert set(threads.values()) == {1}, threads
 
 
 @pytest.mark.parametrize("similarity", ["rc", "ssd", "ncc", "mi"])

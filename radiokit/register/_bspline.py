@@ -124,16 +124,20 @@ import contextlib
 import functools
 import math
 import numbers
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy import fft as sfft
-from scipy.optimize import minimize
 
 from radiokit.checks import is_integer, is_number, scalar
 from radiokit.register import _method
 from radiokit.register._common import _field, _warp_rows, binned_mask
 from radiokit.register._confidence import MODEL_FLOOR, object_noise, sample_step
+
+# scipy's sparse matrices, DCT and L-BFGS are imported where a registration uses them: importing
+# this module (radiokit.pipeline.Config checks the method names and options with it) is then
+# scipy-free, and a refused command line or input does not load them (~0.3 CPU s; session 46)
+if TYPE_CHECKING:
+    import scipy.sparse
 
 __all__ = ["bspline_basis_matrix", "BSplineField"]
 
@@ -277,7 +281,7 @@ PRESETS["silent"] = {**PRESETS["default"], **_SILENT}
 PRESETS["silent-fast"] = {**PRESETS["fast"], **_SILENT}
 
 
-def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> sp.csr_matrix:
+def bspline_basis_matrix(n_pixels, n_ctrl, spacing, factor=1, dtype=np.float32) -> scipy.sparse.csr_matrix:
     """(n_pixels, n_ctrl) sparse cubic B-spline weights (4 per row): pixel ``k`` of a grid
     ``factor`` times coarser than full resolution sits at full-resolution coordinate
     ``factor k + (factor - 1) / 2``; control point ``j`` at ``(j - 1) spacing``. A padded last
@@ -293,6 +297,7 @@ def _laplacian(nr, nc):
     """Discrete bending energy of a control lattice as a stacked operator ``L``:
     ``||L c||^2 = sum (c_rr^2 + c_cc^2 + 2 c_rc^2)`` with second differences taken only where
     they exist, so affine fields (a uniform expansion, a shear) cost nothing."""
+    import scipy.sparse as sp
 
     def d2(n):
         if n < 3:
@@ -588,6 +593,8 @@ class _Level:
         residual buffer itself), from ``_w`` and ``_r``."""
         w, r = self._w, self._r
         wm = None
+        from scipy import fft as sfft  # here, not at the module's import (see the imports)
+
         if self.gain is not None:
             wm = w if self._maskf is None else w * self._maskf
             r += self.gain * wm
@@ -823,9 +830,11 @@ def bspline_register(fixed, moving, mask=None, **options):
     a 60-iteration level on two cores). OpenCV too: its calls run inside the row bands, which
     are the parallelism; with its own pool each remap of a band cost two cores' CPU time
     (`radiokit process` on one 2240 file, one radiokit thread: 31 s of CPU against 28 s)."""
+    import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS, so that the limit below reaches it)
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"), _opencv_threads(1):
+    # OpenCV first: its import loads its own OpenBLAS, which a limit set before it does not reach
+    with _opencv_threads(1), threadpool_limits(limits=1, user_api="blas"):
         return _bspline_register(fixed, moving, mask, **options)
 
 
@@ -1117,6 +1126,8 @@ def _fit_level(fun, grid, n_it, coarsest, x0=None, coarse=(), check=None, extend
     moves by more than ``converge_px`` and ``settles(x)`` (the residual passes the checks); else it
     stops there, where the budget alone would have stopped it (the same iterate: L-BFGS's path
     does not depend on its budget)."""
+    from scipy.optimize import minimize  # here, not at the module's import (see the imports)
+
     last = collections.deque(maxlen=6)
     stopped, count = [], [0]
     lattices = [grid, *coarse]

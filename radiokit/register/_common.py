@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft as sfft
 
 from radiokit.checks import refuse_masked
 
@@ -143,6 +142,8 @@ def residual_complexity(residual, mask=None, alpha=0.05) -> float:
     r = np.asarray(residual, np.float32)
     if mask is not None:
         r = np.where(mask, r, np.float32(0))
+    from scipy import fft as sfft  # here: importing radiokit.register is scipy-free (a refusal's cost)
+
     from radiokit._threads import threads
 
     q = sfft.dctn(r, norm="ortho", workers=threads())
