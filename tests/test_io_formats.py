@@ -3006,6 +3006,28 @@ def test_a_gdal_tiff_of_unusable_scaling_is_refused_in_one_line(tmp_path, items)
         one_line_error(run_cli("info", path), "g.tif", "GDAL")
 
 
+@pytest.mark.parametrize(
+    "item",
+    [
+        '<Item name="OFFSET">250</Item>',  # dataset metadata (no sample): GDAL scales by role alone
+        '<Item name="SCALE">1:100</Item>',  # refused as "no finite number": a readable file
+        '<Item name="SCALE" domain="xml:lab">0.5</Item>',  # another domain's, no role
+        '<Item name="SCALE" role="scale">0.5</Item>',  # no sample: the dataset's, no band's
+        '<Item name="SCALE" sample="1" role="scale">0.5</Item>',  # band 2's, of a one-band image
+    ],
+)
+def test_a_gdal_item_without_band_1s_role_is_metadata_not_scaling(tmp_path, item):
+    """Review s46rio: GDAL applies SCALE/OFFSET only from an item of role "scale"/"offset" and
+    sample 0 (band 1); an item named SCALE or OFFSET without them is a metadata entry. Read as
+    scaling, a dataset item <Item name="OFFSET">250</Item> added 250 to every pixel, silently."""
+    stored = _frames(2, 20, 30)
+    xml = f"<GDALMetadata>{item}</GDALMetadata>"
+    tifffile.imwrite(tmp_path / "g.tif", stored, extratags=[(42112, "s", 0, xml, True)], photometric="minisblack")
+    got = read(tmp_path / "g.tif")
+    np.testing.assert_array_equal(got.data, stored)
+    assert "gdal_scaling" not in got.meta
+
+
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"

@@ -2091,7 +2091,10 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
 
 def _gdal_items(path, xml: str) -> dict:
     """``scale`` and ``offset`` of band 1 (sample 0) in GDAL_METADATA's XML, those it gives:
-    finite numbers, the scale not 0 (every pixel would read as the offset)."""
+    finite numbers, the scale not 0 (every pixel would read as the offset). Only items of role
+    "scale"/"offset" and sample 0 count, as GDAL reads them: an item named SCALE or OFFSET without
+    them is a metadata entry (no sample: the dataset's), and read as scaling, a dataset item
+    OFFSET 250 added 250 to every pixel (review s46rio)."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -2100,8 +2103,8 @@ def _gdal_items(path, xml: str) -> dict:
         raise FormatError(path, f"GDAL_METADATA is no XML ({exc})") from None
     found = {}
     for item in root.iter("Item"):
-        role = (item.get("role") or item.get("name") or "").lower()
-        if role in ("scale", "offset") and item.get("sample", "0") == "0":
+        role = (item.get("role") or "").lower()
+        if role in ("scale", "offset") and (item.get("sample") or "").strip() == "0":
             try:
                 value = float((item.text or "").strip())
             except ValueError:
@@ -2110,7 +2113,7 @@ def _gdal_items(path, xml: str) -> dict:
                 raise FormatError(
                     path,
                     f"GDAL_METADATA's {role.upper()} is {item.text!r}: GDAL's scaling needs a finite number"
-                    + (", not 0" if role == "scale" else ""),
+                    + (", not 0" if role == "scale" and value == 0 else ""),
                 )
             found[role] = value
     return found
