@@ -129,6 +129,10 @@ def _summary(meta: dict) -> dict:
             out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
+        if meta.get("gdal_scaling"):  # its range is of values, not of the stored counts (review s46rio)
+            g = meta["gdal_scaling"]
+            nodata = f", NODATA {g['nodata']:g} as NaN" if "nodata" in g else ""
+            out["gdal_scaling"] = f"stored * {g['scale']:g} + {g['offset']:g}{nodata}"
     elif fmt == "calibration":  # the lines it fills, named as calibrate named them
         from radiokit.calibrate import line_summary
 
@@ -319,7 +323,8 @@ def cmd_info(args) -> int:
             print(f"  saturated  {rep['saturated']} pixel(s) >= {rep['saturation']} ({rep['saturation_from']}){of}")
         if rep["nonfinite"]:
             k, read_ = rep["nonfinite_frames"], rep["frames_read"]
-            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frames"
+            plural = "s" if read_ > 1 else ""  # (one frame of one: "1 of 1 frames" read wrong)
+            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {_escaped(value)}")
