@@ -79,6 +79,15 @@ def _add_raw_hints(p):
 
 
 # -- info --------------------------------------------------------------------------------------
+def _gdal_scaling(g: dict | None) -> str | None:
+    """A GDAL-scaled TIFF's scaling in words. Why: its range is of values, not of the stored
+    counts, and nothing said so (review s46rio)."""
+    if not g:
+        return None
+    nodata = f", NODATA {g['nodata']:g} as NaN" if "nodata" in g else ""
+    return f"stored * {g['scale']:g} + {g['offset']:g}{nodata}"
+
+
 def _summary(meta: dict) -> dict:
     """The few metadata items a person wants to see first."""
     fmt = meta.get("format")
@@ -129,10 +138,7 @@ def _summary(meta: dict) -> dict:
             out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
-        if meta.get("gdal_scaling"):  # its range is of values, not of the stored counts (review s46rio)
-            g = meta["gdal_scaling"]
-            nodata = f", NODATA {g['nodata']:g} as NaN" if "nodata" in g else ""
-            out["gdal_scaling"] = f"stored * {g['scale']:g} + {g['offset']:g}{nodata}"
+        out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
     elif fmt == "calibration":  # the lines it fills, named as calibrate named them
         from radiokit.calibrate import line_summary
 
