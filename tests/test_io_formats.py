@@ -3028,6 +3028,20 @@ def test_a_gdal_item_without_band_1s_role_is_metadata_not_scaling(tmp_path, item
     assert "gdal_scaling" not in got.meta
 
 
+@pytest.mark.parametrize("nodata, warns", [("-9999", False), ("nan", False), ("1e9", False), (" 0 ", True)])
+def test_a_gdal_nodata_on_integer_pixels_warns_only_where_a_pixel_can_hold_it(tmp_path, nodata, warns):
+    """Review s46rio: GDAL_NODATA -9999 or nan on uint16 pixels marks none of them; the warning that
+    they have "no NaN to mark them with" was noise on a file read exactly as stored."""
+    stored = _frames(1, 20, 30)
+    path = tmp_path / "g.tif"
+    tifffile.imwrite(path, stored, extratags=[(42113, "s", 0, nodata, True)], photometric="minisblack")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        got = read(path)
+    np.testing.assert_array_equal(got.data, stored)
+    assert any("GDAL_NODATA" in str(w.message) for w in seen) == warns, [str(w.message) for w in seen]
+
+
 def test_info_says_a_gdal_tiffs_values_are_scaled_and_a_lone_frame_is_one(tmp_path):
     """Review s46rio: `info` printed a GDAL-scaled file's range (23.72 .. 35.95 of stored counts
     2872 .. 4095) with no word that its values are not the stored counts; and one NaN in a

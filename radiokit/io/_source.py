@@ -1482,7 +1482,7 @@ class FrameSource:
             except ValueError:
                 raise FormatError(self.path, f"GDAL_NODATA {str(nodata)[:40]!r} is no number") from None
         if not found or (set(found) == {"nodata"} and np.dtype(page.dtype).kind != "f"):
-            if found:
+            if found and _held_by(found["nodata"], page.dtype):  # (-9999 or nan marks no uint16 pixel)
                 warnings.warn(
                     f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
                     "have no NaN to mark them with: read as stored",
@@ -2087,6 +2087,13 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
             return []
         found.append((shape, axes if len(axes) == len(shape) else "Q" * (len(shape) - 2) + "YX"))
     return found
+
+
+def _held_by(code: float, dtype) -> bool:
+    """Whether integer pixels of ``dtype`` can hold the value ``code``. Why: GDAL_NODATA -9999 or nan
+    on uint16 pixels marks none of them, and a warning that it did was noise (review s46rio)."""
+    info = np.iinfo(np.dtype(dtype))
+    return math.isfinite(code) and code.is_integer() and info.min <= code <= info.max
 
 
 def _gdal_items(path, xml: str) -> dict:
