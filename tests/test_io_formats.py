@@ -3055,32 +3055,6 @@ def test_info_says_a_gdal_tiffs_values_are_scaled_and_a_lone_frame_is_one(tmp_pa
     assert re.search(r"nonfinite\s+1 pixel\(s\) NaN or inf in 1 of 1 frame$", res.stdout, re.M), res.stdout
 
 
-_SCALED_SATURATION = pytest.mark.xfail(
-    strict=True,
-    reason="review s46rio: radiokit's saturation level is an ADC count (Thresholds: an integer under "
-    "65536); GDAL-scaled values are not counts, and a 12-bit panel's clipped flats (stored 4095, read "
-    "35.95) go unflagged. Read as stored (main) they were flagged. Same for an HDF5 file's CF packing.",
-)
-
-
-@pytest.mark.parametrize("scaled", [False, pytest.param(True, marks=_SCALED_SATURATION)])
-def test_a_gdal_scaled_12_bit_flat_clipped_at_its_top_is_still_called_saturated(tmp_path, scaled):
-    """A flat-field correction cancels a scaling its darks and flats share; the saturation rule
-    does not: judged in scaled values a 12-bit panel's top (4095 stored, 35.95 scaled) is never
-    reached, and calibrate's "lower the flat exposure" went unsaid."""
-    from radiokit.calibrate import CalibrationWarning
-
-    rng = np.random.default_rng(7)
-    dark = rng.normal(100, 3, (4, 32, 32)).astype(np.uint16)
-    flat = rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16)
-    flat[:, :4, :4] = 4095  # a clipped corner, 16 pixels in every frame
-    items = {"SCALE": 0.01, "OFFSET": -5} if scaled else {}
-    darks = read(_gdal_tiff(tmp_path / "d.tif", dark, items))
-    flats = read(_gdal_tiff(tmp_path / "f.tif", flat, items))
-    with pytest.warns(CalibrationWarning, match="16 pixels of the flats are saturated"):
-        Calibration.from_frames(darks, flats)
-
-
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"
