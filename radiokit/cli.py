@@ -79,6 +79,15 @@ def _add_raw_hints(p):
 
 
 # -- info --------------------------------------------------------------------------------------
+def _gdal_scaling(g: dict | None) -> str | None:
+    """A GDAL-scaled TIFF's scaling in words. Why: its range is of values, not of the stored
+    counts, and nothing said so (review s46rio)."""
+    if not g:
+        return None
+    nodata = f", NODATA {g['nodata']:g} as NaN" if "nodata" in g else ""
+    return f"stored * {g['scale']:g} + {g['offset']:g}{nodata}"
+
+
 def _summary(meta: dict) -> dict:
     """The few metadata items a person wants to see first."""
     fmt = meta.get("format")
@@ -129,6 +138,7 @@ def _summary(meta: dict) -> dict:
             out["stacked"] = f"{' x '.join(map(str, st['shape']))} ({st['axes']}), read flat in that order"
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
+        out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
     elif fmt == "calibration":  # the lines it fills, named as calibrate named them
         from radiokit.calibrate import line_summary
 
@@ -319,7 +329,8 @@ def cmd_info(args) -> int:
             print(f"  saturated  {rep['saturated']} pixel(s) >= {rep['saturation']} ({rep['saturation_from']}){of}")
         if rep["nonfinite"]:
             k, read_ = rep["nonfinite_frames"], rep["frames_read"]
-            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frames"
+            plural = "s" if read_ > 1 else ""  # (one frame of one: "1 of 1 frames" read wrong)
+            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
             print(f"  {key:<10} {_escaped(value)}")

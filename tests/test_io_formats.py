@@ -3006,6 +3006,55 @@ def test_a_gdal_tiff_of_unusable_scaling_is_refused_in_one_line(tmp_path, items)
         one_line_error(run_cli("info", path), "g.tif", "GDAL")
 
 
+@pytest.mark.parametrize(
+    "item",
+    [
+        '<Item name="OFFSET">250</Item>',  # dataset metadata (no sample): GDAL scales by role alone
+        '<Item name="SCALE">1:100</Item>',  # refused as "no finite number": a readable file
+        '<Item name="SCALE" domain="xml:lab">0.5</Item>',  # another domain's, no role
+        '<Item name="SCALE" role="scale">0.5</Item>',  # no sample: the dataset's, no band's
+        '<Item name="SCALE" sample="1" role="scale">0.5</Item>',  # band 2's, of a one-band image
+    ],
+)
+def test_a_gdal_item_without_band_1s_role_is_metadata_not_scaling(tmp_path, item):
+    """Review s46rio: GDAL applies SCALE/OFFSET only from an item of role "scale"/"offset" and
+    sample 0 (band 1); an item named SCALE or OFFSET without them is a metadata entry. Read as
+    scaling, a dataset item <Item name="OFFSET">250</Item> added 250 to every pixel, silently."""
+    stored = _frames(2, 20, 30)
+    xml = f"<GDALMetadata>{item}</GDALMetadata>"
+    tifffile.imwrite(tmp_path / "g.tif", stored, extratags=[(42112, "s", 0, xml, True)], photometric="minisblack")
+    got = read(tmp_path / "g.tif")
+    np.testing.assert_array_equal(got.data, stored)
+    assert "gdal_scaling" not in got.meta
+
+
+@pytest.mark.parametrize("nodata, warns", [("-9999", False), ("nan", False), ("1e9", False), (" 0 ", True)])
+def test_a_gdal_nodata_on_integer_pixels_warns_only_where_a_pixel_can_hold_it(tmp_path, nodata, warns):
+    """Review s46rio: GDAL_NODATA -9999 or nan on uint16 pixels marks none of them; the warning that
+    they have "no NaN to mark them with" was noise on a file read exactly as stored."""
+    stored = _frames(1, 20, 30)
+    path = tmp_path / "g.tif"
+    tifffile.imwrite(path, stored, extratags=[(42113, "s", 0, nodata, True)], photometric="minisblack")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        got = read(path)
+    np.testing.assert_array_equal(got.data, stored)
+    assert any("GDAL_NODATA" in str(w.message) for w in seen) == warns, [str(w.message) for w in seen]
+
+
+def test_info_says_a_gdal_tiffs_values_are_scaled_and_a_lone_frame_is_one(tmp_path):
+    """Review s46rio: `info` printed a GDAL-scaled file's range (23.72 .. 35.95 of stored counts
+    2872 .. 4095) with no word that its values are not the stored counts; and one NaN in a
+    one-frame file read "in 1 of 1 frames"."""
+    stored = _frames(1, 20, 30).astype(np.float32)
+    stored[0, 2, 3] = 7
+    path = _gdal_tiff(tmp_path / "g.tif", stored, {"SCALE": 0.25, "OFFSET": -100}, nodata=7)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"gdal_scaling\s+stored \* 0\.25 \+ -100, NODATA 7 as NaN", res.stdout), res.stdout
+    assert re.search(r"nonfinite\s+1 pixel\(s\) NaN or inf in 1 of 1 frame$", res.stdout, re.M), res.stdout
+
+
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"

@@ -1482,7 +1482,7 @@ class FrameSource:
             except ValueError:
                 raise FormatError(self.path, f"GDAL_NODATA {str(nodata)[:40]!r} is no number") from None
         if not found or (set(found) == {"nodata"} and np.dtype(page.dtype).kind != "f"):
-            if found:
+            if found and _held_by(found["nodata"], page.dtype):  # (-9999 or nan marks no uint16 pixel)
                 warnings.warn(
                     f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
                     "have no NaN to mark them with: read as stored",
@@ -2089,9 +2089,19 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
     return found
 
 
+def _held_by(code: float, dtype) -> bool:
+    """Whether integer pixels of ``dtype`` can hold the value ``code``. Why: GDAL_NODATA -9999 or nan
+    on uint16 pixels marks none of them, and a warning that it did was noise (review s46rio)."""
+    info = np.iinfo(np.dtype(dtype))
+    return math.isfinite(code) and code.is_integer() and info.min <= code <= info.max
+
+
 def _gdal_items(path, xml: str) -> dict:
     """``scale`` and ``offset`` of band 1 (sample 0) in GDAL_METADATA's XML, those it gives:
-    finite numbers, the scale not 0 (every pixel would read as the offset)."""
+    finite numbers, the scale not 0 (every pixel would read as the offset). Only items of role
+    "scale"/"offset" and sample 0 count, as GDAL reads them: an item named SCALE or OFFSET without
+    them is a metadata entry (no sample: the dataset's), and read as scaling, a dataset item
+    OFFSET 250 added 250 to every pixel (review s46rio)."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -2100,8 +2110,8 @@ def _gdal_items(path, xml: str) -> dict:
         raise FormatError(path, f"GDAL_METADATA is no XML ({exc})") from None
     found = {}
     for item in root.iter("Item"):
-        role = (item.get("role") or item.get("name") or "").lower()
-        if role in ("scale", "offset") and item.get("sample", "0") == "0":
+        role = (item.get("role") or "").lower()
+        if role in ("scale", "offset") and (item.get("sample") or "").strip() == "0":
             try:
                 value = float((item.text or "").strip())
             except ValueError:
@@ -2110,7 +2120,7 @@ def _gdal_items(path, xml: str) -> dict:
                 raise FormatError(
                     path,
                     f"GDAL_METADATA's {role.upper()} is {item.text!r}: GDAL's scaling needs a finite number"
-                    + (", not 0" if role == "scale" else ""),
+                    + (", not 0" if role == "scale" and value == 0 else ""),
                 )
             found[role] = value
     return found
