@@ -507,6 +507,11 @@ class _Level:
         self._table = _bilinear_table(self.moving)
         self._w, self._dy, self._dx, self._r = (np.empty(self.shape, dt) for _ in range(4))
         self.similarity = similarity
+        # samples warped out of the frame leave the residual terms (rc, ssd); ncc and mi read the
+        # warped image's statistics and keep the replicated border
+        self.exclude_outside = similarity in ("rc", "ssd")
+        self._first_off = {}
+        self._off_band = None  # {band's first row: where the level's first field carries a pixel out}
         self.alpha = alpha
         self.n = float(self.mask.sum()) if self.mask is not None else float(self.fixed.size)
         self.hp = None
@@ -551,7 +556,8 @@ class _Level:
         """Bilinear ``moving(pixel + d)`` and its exact derivatives along rows and columns on rows
         ``sl`` into ``_w``, ``_dy``, ``_dx``, the masked residual into ``_r``; ``y``, ``x`` the
         band's displacement (overwritten). The derivative is the interpolant's own, so the
-        energy's gradient is exact; border replicated, no derivative where clamped. Numpy rather
+        energy's gradient is exact; border replicated, no derivative where clamped, and the pixels
+        ``_outside`` names left out (no residual, no derivative). Numpy rather
         than OpenCV's remap, whose 1/32-pixel fixed-point positions make the energy a staircase
         at fine scales. One gather of the cell's four coefficients (``_bilinear_table``) per
         pixel; the arithmetic is the textbook one, operation for operation."""
@@ -560,6 +566,7 @@ class _Level:
         rows, cols = self.shape
         y += self._row[sl]
         x += self._col if self._col.ndim == 1 else self._col[sl]
+        off = self._outside(sl, y, x)
         yc, y0, outside_y = _cell(y, rows)  # b and its cell's row
         xc, x0, outside_x = _cell(x, cols)  # a and its column
         # the cell's I00, I10 - I00, I01, I11 - I01, gathered plane by plane by OpenCV's
@@ -587,6 +594,26 @@ class _Level:
         r = np.subtract(w, self.fixed[sl], out=self._r[sl])
         if self._maskf is not None:
             r *= self._maskf[sl]
+        if off is not None:  # no data there: left out as the mask leaves a pixel out (w for the gain)
+            for a in (r, w, dy, self._dx[sl]):
+                np.copyto(a, 0, where=off)
+
+    def _outside(self, sl, y, x):
+        """The pixels of rows ``sl`` left out of the data term (None: none): those the level's
+        first field carried out of the frame, decided at its first evaluation (``y``, ``x`` the
+        band's positions) and kept for the level. Kept, not redrawn at each evaluation: a pixel
+        left out has no residual, so a set redrawn as the field moves would pay the field to
+        carry pixels out (and make the energy jump where one crosses)."""
+        if not self.exclude_outside:
+            return None
+        if self._off_band is None:  # the first evaluation: its bands fill this
+            return self._first_off.setdefault(sl.start, _beyond(y, self.shape[0], _beyond(x, self.shape[1])))
+        return self._off_band.get(sl.start)
+
+    def _decided(self):
+        """After an evaluation: the first one's pixels out of the frame are the level's."""
+        if self._off_band is None and self.exclude_outside:
+            self._off_band = self._first_off
 
     def _similarity(self):
         """Energy and its derivative with respect to the warped image (frame-sized; may be the
@@ -655,6 +682,7 @@ class _Level:
     def energy(self, d):
         """Similarity energy and its gradient with respect to the field d (2, rows, cols)."""
         self._map(lambda sl: self._sample_band(sl, d[0, sl].copy(), d[1, sl].copy()))
+        self._decided()
         e, dr = self._similarity()
         out = np.zeros((2,) + self.shape, self.fixed.dtype)
         if dr is None:
@@ -687,6 +715,7 @@ class _Level:
             self._sample_band(sl, y, xx)
 
         self._map(sample, bands)
+        self._decided()
         e, dr = self._similarity()
         if dr is None:  # no gradient: dE/dd (left in _dy, _dx, which ``joint`` reads) is zero
             self._dy.fill(0)
@@ -700,6 +729,22 @@ class _Level:
 
         self._map(gradient)
         return e, grid.adjoint_rows(self._dy, self._dx, factor)
+
+
+# how far (px) past the frame's outer pixel centres a warped position may fall and still be
+# sampled: within half a pixel the replicated border is the nearest pixel (grid_jitter's offsets
+# reach that far at no motion); beyond, the border's replica is no observation of the moving image
+_OUTSIDE_MARGIN = 0.5
+
+
+def _beyond(v, n, also=None):
+    """Where positions ``v`` on an axis of ``n`` pixels fall more than ``_OUTSIDE_MARGIN`` outside
+    it, or'ed with ``also``; None when nowhere (the band's extremes tell)."""
+    m = _OUTSIDE_MARGIN
+    if float(v.min()) >= -m and float(v.max()) <= n - 1 + m:
+        return also
+    out = (v < -m) | (v > n - 1 + m)
+    return out if also is None else out | also
 
 
 def _cell(v, n):
