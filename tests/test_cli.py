@@ -814,27 +814,14 @@ def test_process_refuses_a_slip_before_loading_the_pipeline(tmp_path):
         ["process", exp, exp],
         ["process", exp, "-o", tmp_path / "res.h5"],
     ]
-    code = (
-        "import json, sys; from radiokit.cli import main; "
-        "codes = [main(a) for a in json.loads(sys.argv[1])]; "
-        "print(json.dumps([codes, sorted(m for m in sys.modules if m in "
-        "('radiokit.pipeline', 'radiokit.register', 'radiokit.results', 'scipy'))]))"
-    )
-    argv = json.dumps([[str(a) for a in slip] for slip in slips])
-    res = subprocess.run(
-        [sys.executable, "-c", code, argv],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert res.returncode == 0, res.stderr
-    codes, loaded = json.loads(res.stdout)
-    assert codes == [2, 2, 2, 2] and res.stderr.count("\n") == 4, res.stderr
+    heavy = ("radiokit.pipeline", "radiokit.register", "radiokit.results", "scipy")
+    codes, loaded, err = _fresh_commands(slips, heavy)
+    assert codes == [2, 2, 2, 2] and err.count("\n") == 4, err
     assert loaded == [], loaded
 
 
 #: a fresh interpreter's `radiokit` run on each command line of argv[1] (stdout dropped): the exit
-#: codes, and which of the heavy packages it imported
+#: codes, and which of the modules or packages argv[2] names it imported
 _IMPORTS_OF_COMMANDS = """
 import contextlib, io, json, sys
 from radiokit.cli import main
@@ -845,9 +832,25 @@ for argv in json.loads(sys.argv[1]):
             codes.append(main(argv))
         except SystemExit as exc:  # --help
             codes.append(exc.code)
-heavy = {"scipy", "numba", "llvmlite", "matplotlib", "cv2", "skimage", "dask", "distributed"}
-print(json.dumps([codes, sorted(heavy & {m.split(".")[0] for m in sys.modules})]))
+heavy = set(json.loads(sys.argv[2]))
+names = set(sys.modules) | {m.split(".")[0] for m in sys.modules}
+print(json.dumps([codes, sorted(heavy & names)]))
 """
+
+
+def _fresh_commands(commands, heavy):
+    """``(exit codes, which of heavy were imported, stderr)`` of ``commands`` run by
+    :data:`_IMPORTS_OF_COMMANDS` in a fresh interpreter."""
+    argv = json.dumps([[str(a) for a in cmd] for cmd in commands])
+    res = subprocess.run(
+        [sys.executable, "-c", _IMPORTS_OF_COMMANDS, argv, json.dumps(list(heavy))],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
+    assert res.returncode == 0, res.stderr
+    codes, loaded = json.loads(res.stdout)
+    return codes, loaded, res.stderr
 
 
 def test_help_and_refusals_import_no_scipy_numba_or_matplotlib(tmp_path):
@@ -886,17 +889,10 @@ def test_help_and_refusals_import_no_scipy_numba_or_matplotlib(tmp_path):
             "4",
         ],
     ]
-    argv = json.dumps([[str(a) for a in cmd] for cmd in helps + refusals])
-    res = subprocess.run(
-        [sys.executable, "-c", _IMPORTS_OF_COMMANDS, argv],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
-    assert res.returncode == 0, res.stderr
-    codes, loaded = json.loads(res.stdout)
-    assert codes == [0] * len(helps) + [2] * len(refusals), res.stderr
-    assert res.stderr.count("\n") == len(refusals), res.stderr  # one line each
+    heavy = ("scipy", "numba", "llvmlite", "matplotlib", "cv2", "skimage", "dask", "distributed")
+    codes, loaded, err = _fresh_commands(helps + refusals, heavy)
+    assert codes == [0] * len(helps) + [2] * len(refusals), err
+    assert err.count("\n") == len(refusals), err  # one line each
     assert loaded == [], loaded
 
 
