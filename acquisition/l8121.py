@@ -2569,7 +2569,10 @@ class L8121:
         X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
         standby is switched off (confirmed) and counts as done if the controller reports it done;
         one read done but never read running (shorter than a poll, or a unit whose ``STS`` never
-        says so) is switched off too, confirmed, before it is called done. It waits first for the controller's power-on checks (:meth:`settled_status`).
+        says so) is switched off too, confirmed, before it is called done -- but a forced one (A,
+        from standby with the warm-up done, which is also what the unit reads until it begins) is
+        waited for ``warmup_start_s`` first, and never read running is switched off and "did not
+        start", not done. It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
@@ -2645,7 +2648,9 @@ class L8121:
                     self.dialect.settings["warm_up"].command,
                     timeout_s,
                 )
-            self._wait_warm(t0, timeout_s, bar, progress)
+            # a forced start from standby with the warm-up done (A): those are also what the unit
+            # reads until the warm-up begins, so they say nothing until warmup_start_s is over
+            self._wait_warm(t0, timeout_s, bar, progress, from_done=state == SourceState.STANDBY)
         except BaseException:
             self._off_quietly()
             raise
@@ -2704,7 +2709,7 @@ class L8121:
             raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
         return True
 
-    def _wait_warm(self, t0: float, timeout_s: float, bar, progress) -> None:
+    def _wait_warm(self, t0: float, timeout_s: float, bar, progress, from_done: bool = False) -> None:
         seen_running = False
         while True:
             elapsed = time.monotonic() - t0
@@ -2716,9 +2721,11 @@ class L8121:
             elif callable(progress):
                 progress(elapsed, state)
             if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
-                if not seen_running and not self.warmup_joined:
-                    self._warm_up_unseen(elapsed)
-                return
+                if seen_running or self.warmup_joined:
+                    return
+                if not (from_done and elapsed <= self.config.warmup_start_s):
+                    self._warm_up_unseen(elapsed, from_done)
+                    return
             if state == SourceState.XRAY_ON:
                 if not seen_running:  # the start command began an exposure, not a warm-up
                     self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
@@ -2761,7 +2768,7 @@ class L8121:
             raise self._switched_off(DeviceError, why, state, None, ask_code=False)
         logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
 
-    def _warm_up_unseen(self, elapsed: float) -> None:
+    def _warm_up_unseen(self, elapsed: float, from_done: bool) -> None:
         """The warm-up reads done (standby, A ``SWE 0`` / B ``DAG ... END``) but no poll read it
         running: shorter than a poll, or a unit whose ``STS`` never says warming up. Nothing read
         says the start command's beam is over -- L8121.md ties no state to its echo, and a state
@@ -2770,8 +2777,18 @@ class L8121:
         before the warm-up is called done and the tube off. That ``XOF`` is also what disarms
         the guardian's watchdog, which after a start command takes a standby as off only once
         the state has read on or an ``XOF`` passed (left by review s44rr2: its watchdog sent an
-        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told."""
+        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told.
+        ``from_done`` (A's forced ``WUP`` from standby, done): nothing changed since the start
+        command for ``warmup_start_s`` -- no evidence a warm-up ran, so it is not called done
+        (review s46rv: it was, on the first poll, and a unit that began late then emitted with the
+        driver calling the tube off)."""
         state, failed = self._off_for_fault()
+        if from_done:
+            why = (
+                f"warm-up did not start: {self.dialect.settings['warm_up'].command} was answered, but the "
+                f"controller still read standby with the warm-up done after {elapsed:.1f} s, never running"
+            )
+            raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
         if failed is not None:
             why = f"the warm-up read done after {elapsed:.1f} s without ever reading it running"
             raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed

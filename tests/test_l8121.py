@@ -3531,6 +3531,39 @@ def test_a_warm_up_never_read_running_ends_switched_off_and_disarms_the_guardian
     assert not watch.may_be_on and not watch.starting
 
 
+def test_a_forced_a_warm_up_that_begins_late_is_waited_for_not_called_done_at_once():
+    """Review s46rv: a forced A warm-up starts from standby with the warm-up done, so standby and
+    done are also what the unit reads between ``WUP``'s echo and its start. The first poll after
+    ``WUP`` read them: the driver switched off (an ``XOF`` with nothing yet to stop), called the
+    warm-up done in 0.1 s and the tube off -- and the warm-up then began, X-rays on with nobody
+    watching. Such readings are waited through for ``warmup_start_s``: the warm-up is seen
+    running, waited out, and the tube is off when the driver says so."""
+    model = L8121Model(dialect="A", warmed_up=True, warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.warm_up_starts_late(4 * FAST["poll_s"])  # a few polls after the echo
+    with PtyServer(model) as server, driver(server, "A") as src:
+        seconds = src.warm_up(force=True, progress=False)
+        assert not src.may_be_on and src.warmup_state() == WarmupState.DONE
+        ran = [e.command for e in model.log if e.reply == "STS 1"]
+    assert ran and seconds >= WARMUP_S, (seconds, model.commands)  # it ran, and was waited out
+    assert not model.xray_on and model.state == SourceState.STANDBY
+
+
+def test_a_forced_a_warm_up_that_never_begins_is_switched_off_and_not_called_done():
+    """The unit answers a forced ``WUP`` but stays in standby, done: nothing says a warm-up ran, so
+    after ``warmup_start_s`` the driver switches off (confirmed) and says it did not start, where
+    it returned "warm-up done" on the first poll."""
+    model = L8121Model(dialect="A", warmed_up=True, warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.warm_up_starts_late(float("inf"))
+    with PtyServer(model) as server, driver(server, "A", warmup_start_s=0.2) as src:
+        with pytest.raises(DeviceError) as err:
+            src.warm_up(force=True, progress=False)
+        assert not src.may_be_on
+    said = str(err.value)
+    assert "\n" not in said and "warm-up did not start" in said, said
+    assert said.endswith("X-rays switched off"), said
+    assert err.value.switch_off.confirmed and "XOF" in model.commands[model.commands.index("WUP") :]
+
+
 def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():
     """The guardian's link reconnected (its check's count moved) while X-rays may have been on:
     the STS that later reads off is the unit's now at the port, known only by its model. The
