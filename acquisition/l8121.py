@@ -134,7 +134,15 @@ class SettingRefused(ValueError):
 
     def __init__(self, detail: str, *, of: str = "L8121 configuration"):
         super().__init__(f"{of}: {detail}")
-        self.detail = detail
+        self.detail, self.of = detail, of
+
+    def __reduce__(self):
+        # copy and pickle rebuild an exception from its args, the whole text: its speaker was said twice
+        return _setting_refused, (self.detail, self.of)
+
+
+def _setting_refused(detail: str, of: str) -> SettingRefused:
+    return SettingRefused(detail, of=of)
 
 
 class SwitchedOff(DeviceError):

@@ -3028,6 +3028,20 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         L8121("loop://", connect=False, **{key: value})
 
 
+def test_a_refusal_keeps_its_words_when_copied_or_pickled():
+    """``SettingRefused`` builds its text from ``detail`` and its speaker: copied or pickled (a
+    process pool, a log handler's copy), it was rebuilt from the whole text as its detail, and
+    said its speaker twice ("L8121 configuration: L8121: ...")."""
+    import copy
+    import pickle
+
+    from acquisition.l8121 import SettingRefused
+
+    for exc in (SettingRefused("voltage_kv = 200 kV is outside", of="L8121"), SettingRefused("kv_max = 1000")):
+        for again in (copy.copy(exc), pickle.loads(pickle.dumps(exc))):
+            assert (str(again), again.detail, type(again)) == (str(exc), exc.detail, SettingRefused)
+
+
 @pytest.mark.parametrize(
     "key, value, message",
     [
