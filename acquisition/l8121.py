@@ -2601,7 +2601,8 @@ class L8121:
             the lowest-power values the configuration allows (``kv_min``, ``ua_min``: 40 kV 0 µA
             by default) are set and read back the same way. A refusal or another read-back stops
             the warm-up before any X-ray command, and so does a controller error code (``SER`` not
-            0, asked last, after the interlock: :class:`SourceFault`, nothing reset). What was set is kept in :attr:`warmup_values`
+            0, asked last, after the interlock: :class:`SourceFault`, nothing reset) and (B) a
+            ``DAG`` read last that no longer says ``YET`` (its ``XON`` would be an exposure). What was set is kept in :attr:`warmup_values`
             (``(kv, ua, given)``; None: no warm-up was started).
 
         Returns
@@ -2639,6 +2640,7 @@ class L8121:
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
             self._require_no_controller_error("warm-up not started")  # it emits (B's may run on into XON)
+            self._require_warm_up_still_due()
         bar = None
         if progress is True:
             from radiokit.progress import tqdm
@@ -2938,6 +2940,17 @@ class L8121:
             raise DeviceError(
                 f"{self.port}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
                 "decided it while the settings were sent (call warm_up())"
+            )
+
+    def _require_warm_up_still_due(self) -> None:
+        """B: ``DAG`` still ``YET``, read last before the warm-up's ``XON`` (the mirror of
+        :meth:`_require_warm_up_still_done`): its first ``DAG`` came before the settings and their
+        read-back, and a warm-up no longer due by then made that ``XON`` an exposure at the
+        warm-up's settings (review s46rv; switched off only at the first poll)."""
+        if self.dialect is DIALECT_B and self._read("warmup").done:
+            raise DeviceError(
+                f"{self.port}: warm-up not started: DAG now says it is done (END): its XON would be an "
+                "exposure; nothing that emits was sent"
             )
 
     def _require_remote(self, what: str) -> None:
