@@ -134,7 +134,15 @@ class SettingRefused(ValueError):
 
     def __init__(self, detail: str, *, of: str = "L8121 configuration"):
         super().__init__(f"{of}: {detail}")
-        self.detail = detail
+        self.detail, self.of = detail, of
+
+    def __reduce__(self):
+        # copy and pickle rebuild an exception from its args, the whole text: its speaker was said twice
+        return _setting_refused, (self.detail, self.of)
+
+
+def _setting_refused(detail: str, of: str) -> SettingRefused:
+    return SettingRefused(detail, of=of)
 
 
 class SwitchedOff(DeviceError):
@@ -2569,7 +2577,10 @@ class L8121:
         X-rays on instead of ``AGING``. A warm-up seen running that ends in X-rays on rather than
         standby is switched off (confirmed) and counts as done if the controller reports it done;
         one read done but never read running (shorter than a poll, or a unit whose ``STS`` never
-        says so) is switched off too, confirmed, before it is called done. It waits first for the controller's power-on checks (:meth:`settled_status`).
+        says so) is switched off too, confirmed, before it is called done -- but a forced one (A,
+        from standby with the warm-up done, which is also what the unit reads until it begins) is
+        waited for ``warmup_start_s`` first, and never read running is switched off and "did not
+        start", not done. It waits first for the controller's power-on checks (:meth:`settled_status`).
 
         Parameters
         ----------
@@ -2590,7 +2601,8 @@ class L8121:
             the lowest-power values the configuration allows (``kv_min``, ``ua_min``: 40 kV 0 µA
             by default) are set and read back the same way. A refusal or another read-back stops
             the warm-up before any X-ray command, and so does a controller error code (``SER`` not
-            0, asked last, after the interlock: :class:`SourceFault`, nothing reset). What was set is kept in :attr:`warmup_values`
+            0, asked last, after the interlock: :class:`SourceFault`, nothing reset) and (B) a
+            ``DAG`` read last that no longer says ``YET`` (its ``XON`` would be an exposure). What was set is kept in :attr:`warmup_values`
             (``(kv, ua, given)``; None: no warm-up was started).
 
         Returns
@@ -2628,6 +2640,7 @@ class L8121:
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
             self._require_no_controller_error("warm-up not started")  # it emits (B's may run on into XON)
+            self._require_warm_up_still_due()
         bar = None
         if progress is True:
             from radiokit.progress import tqdm
@@ -2645,7 +2658,9 @@ class L8121:
                     self.dialect.settings["warm_up"].command,
                     timeout_s,
                 )
-            self._wait_warm(t0, timeout_s, bar, progress)
+            # a forced start from standby with the warm-up done (A): those are also what the unit
+            # reads until the warm-up begins, so they say nothing until warmup_start_s is over
+            self._wait_warm(t0, timeout_s, bar, progress, from_done=state == SourceState.STANDBY)
         except BaseException:
             self._off_quietly()
             raise
@@ -2704,7 +2719,7 @@ class L8121:
             raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
         return True
 
-    def _wait_warm(self, t0: float, timeout_s: float, bar, progress) -> None:
+    def _wait_warm(self, t0: float, timeout_s: float, bar, progress, from_done: bool = False) -> None:
         seen_running = False
         while True:
             elapsed = time.monotonic() - t0
@@ -2716,9 +2731,11 @@ class L8121:
             elif callable(progress):
                 progress(elapsed, state)
             if state == SourceState.STANDBY and self.warmup_state() == WarmupState.DONE:
-                if not seen_running and not self.warmup_joined:
-                    self._warm_up_unseen(elapsed)
-                return
+                if seen_running or self.warmup_joined:
+                    return
+                if not (from_done and elapsed <= self.config.warmup_start_s):
+                    self._warm_up_unseen(elapsed, from_done)
+                    return
             if state == SourceState.XRAY_ON:
                 if not seen_running:  # the start command began an exposure, not a warm-up
                     self._trip("X-rays came on as an exposure instead of a warm-up (STS says X-rays on)")
@@ -2761,7 +2778,7 @@ class L8121:
             raise self._switched_off(DeviceError, why, state, None, ask_code=False)
         logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
 
-    def _warm_up_unseen(self, elapsed: float) -> None:
+    def _warm_up_unseen(self, elapsed: float, from_done: bool) -> None:
         """The warm-up reads done (standby, A ``SWE 0`` / B ``DAG ... END``) but no poll read it
         running: shorter than a poll, or a unit whose ``STS`` never says warming up. Nothing read
         says the start command's beam is over -- L8121.md ties no state to its echo, and a state
@@ -2770,8 +2787,18 @@ class L8121:
         before the warm-up is called done and the tube off. That ``XOF`` is also what disarms
         the guardian's watchdog, which after a start command takes a standby as off only once
         the state has read on or an ``XOF`` passed (left by review s44rr2: its watchdog sent an
-        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told."""
+        unneeded ``XOF`` with a warning). Not confirmed: the warm-up fails, the operator told.
+        ``from_done`` (A's forced ``WUP`` from standby, done): nothing changed since the start
+        command for ``warmup_start_s`` -- no evidence a warm-up ran, so it is not called done
+        (review s46rv: it was, on the first poll, and a unit that began late then emitted with the
+        driver calling the tube off)."""
         state, failed = self._off_for_fault()
+        if from_done:
+            why = (
+                f"warm-up did not start: {self.dialect.settings['warm_up'].command} was answered, but the "
+                f"controller still read standby with the warm-up done after {elapsed:.1f} s, never running"
+            )
+            raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
         if failed is not None:
             why = f"the warm-up read done after {elapsed:.1f} s without ever reading it running"
             raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
@@ -2913,6 +2940,17 @@ class L8121:
             raise DeviceError(
                 f"{self.port}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
                 "decided it while the settings were sent (call warm_up())"
+            )
+
+    def _require_warm_up_still_due(self) -> None:
+        """B: ``DAG`` still ``YET``, read last before the warm-up's ``XON`` (the mirror of
+        :meth:`_require_warm_up_still_done`): its first ``DAG`` came before the settings and their
+        read-back, and a warm-up no longer due by then made that ``XON`` an exposure at the
+        warm-up's settings (review s46rv; switched off only at the first poll)."""
+        if self.dialect is DIALECT_B and self._read("warmup").done:
+            raise DeviceError(
+                f"{self.port}: warm-up not started: DAG now says it is done (END): its XON would be an "
+                "exposure; nothing that emits was sent"
             )
 
     def _require_remote(self, what: str) -> None:

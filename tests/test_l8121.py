@@ -894,6 +894,10 @@ def before_the_start(model: L8121Model, wire) -> list[str]:
     return cmds[: cmds.index(wire["warm"])]
 
 
+# what each dialect reads last before a warm-up's start command
+LAST_BEFORE_WARM_UP = {"A": ["SIN", "SER"], "B": ["SIN", "SER", "DAG"]}
+
+
 @pytest.mark.parametrize("given", [(60, 250), None])
 def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, wire, given):
     """Found: B's warm-up sent XON (which emits, at the presets) without setting or reading the
@@ -907,8 +911,10 @@ def test_warm_up_sets_and_reads_back_its_values_before_it_emits(cold, dialect, w
         assert src.warmup_values == (kv, ua, given is not None)
     sets = {"A": [f"HIV {kv}", f"CUR {ua}"], "B": [f"PHV {kv * 10}", f"PCU {ua}"]}[dialect]
     sent = before_the_start(model, wire)
-    assert sent[-2:] == ["SIN", "SER"]  # the interlock and the error code, read again last before the start
-    assert sent[-len(sets) - len(wire["setpoint"]) - 2 : -2] == sets + wire["setpoint"]
+    # the interlock and the error code, read again last before the start (and B's DAG, still YET)
+    last = LAST_BEFORE_WARM_UP[dialect]
+    assert sent[-len(last) :] == last
+    assert sent[-len(sets) - len(wire["setpoint"]) - len(last) : -len(last)] == sets + wire["setpoint"]
     assert (model.set_kv, model.set_ua) == (kv, ua) and not model.xray_on
 
 
@@ -927,7 +933,7 @@ def test_warm_up_sets_and_reads_back_the_focus_asked_for_before_it_emits(cold, d
         assert model._focus == 1 and src.focus == 1
     sent = before_the_start(model, wire)[n:]
     assert focus_1 in sent and sent.index(focus_1) < sent.index(WIRE[dialect]["focus_get"][0])
-    assert sent[-2:] == ["SIN", "SER"]
+    assert sent[-len(LAST_BEFORE_WARM_UP[dialect]) :] == LAST_BEFORE_WARM_UP[dialect]
 
 
 def test_a_focus_not_read_back_before_a_warm_up_stops_it_before_it_emits(cold, dialect, wire, monkeypatch):
@@ -1172,6 +1178,20 @@ def test_a_unit_whose_swe_says_not_started_when_none_is_needed_is_configuration(
         SourceConfig(standby_needs_warmup_done="no")
 
 
+def test_b_a_warm_up_no_longer_due_when_its_settings_are_read_back_sends_no_xon():
+    """Review s46rv, the mirror of the exposure's check: B's warm-up starts with ``XON`` while
+    ``DAG`` says ``YET``, read before its settings and their read-back. A warm-up no longer due by
+    then (``END``: the unit's own rule, a panel) made that ``XON`` an exposure at the warm-up's
+    settings, switched off only at the first poll. ``DAG`` is read again last: no ``XON``."""
+    model = L8121Model(dialect="B", warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.inject_after("PCU", model.warm)
+    with PtyServer(model) as server, driver(server, "B") as src:
+        with pytest.raises(DeviceError, match=r"warm-up not started: DAG now says it is done \(END\)"):
+            src.warm_up(progress=False)
+        assert "XON" not in model.commands and not model.xray_on
+        assert model.commands[-1] == "DAG"
+
+
 def test_b_a_warm_up_that_falls_due_while_the_settings_are_sent_stops_before_xon():
     """B's XON starts a warm-up when one is due (L8121.md), and the only DAG was read before the
     settings and their read-back: ~0.7 s and ten exchanges before XON (s44), so the 8-hour rule
@@ -1208,7 +1228,8 @@ def test_b_a_warm_up_xon_that_starts_an_exposure_is_switched_off():
     """The reverse: someone finishes the warm-up at the controller between the driver's DAG and
     its XON; the warm-up's XON starts an exposure; the driver switches off."""
     model = L8121Model(dialect="B", warmup_s=30, ramp_s=RAMP_S)
-    model.inject_after("SIN", model.warm)
+    # after the DAG read last before the XON (one exchange apart): a DAG before it sees END and stops
+    model.inject_after("SER", lambda: model.inject_after("DAG", model.warm))
     with PtyServer(model) as server, driver(server, "B") as src:
         with pytest.raises(SourceFault, match="X-rays came on as an exposure instead of a warm-up"):
             src.warm_up(progress=False)
@@ -3028,6 +3049,20 @@ def test_a_configuration_may_only_tighten_the_ratings(key, value, message):
         L8121("loop://", connect=False, **{key: value})
 
 
+def test_a_refusal_keeps_its_words_when_copied_or_pickled():
+    """``SettingRefused`` builds its text from ``detail`` and its speaker: copied or pickled (a
+    process pool, a log handler's copy), it was rebuilt from the whole text as its detail, and
+    said its speaker twice ("L8121 configuration: L8121: ...")."""
+    import copy
+    import pickle
+
+    from acquisition.l8121 import SettingRefused
+
+    for exc in (SettingRefused("voltage_kv = 200 kV is outside", of="L8121"), SettingRefused("kv_max = 1000")):
+        for again in (copy.copy(exc), pickle.loads(pickle.dumps(exc))):
+            assert (str(again), again.detail, type(again)) == (str(exc), exc.detail, SettingRefused)
+
+
 @pytest.mark.parametrize(
     "key, value, message",
     [
@@ -3529,6 +3564,39 @@ def test_a_warm_up_never_read_running_ends_switched_off_and_disarms_the_guardian
         watch.sent(exchange.command)
         watch.replied(exchange.command, exchange.reply)
     assert not watch.may_be_on and not watch.starting
+
+
+def test_a_forced_a_warm_up_that_begins_late_is_waited_for_not_called_done_at_once():
+    """Review s46rv: a forced A warm-up starts from standby with the warm-up done, so standby and
+    done are also what the unit reads between ``WUP``'s echo and its start. The first poll after
+    ``WUP`` read them: the driver switched off (an ``XOF`` with nothing yet to stop), called the
+    warm-up done in 0.1 s and the tube off -- and the warm-up then began, X-rays on with nobody
+    watching. Such readings are waited through for ``warmup_start_s``: the warm-up is seen
+    running, waited out, and the tube is off when the driver says so."""
+    model = L8121Model(dialect="A", warmed_up=True, warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.warm_up_starts_late(4 * FAST["poll_s"])  # a few polls after the echo
+    with PtyServer(model) as server, driver(server, "A") as src:
+        seconds = src.warm_up(force=True, progress=False)
+        assert not src.may_be_on and src.warmup_state() == WarmupState.DONE
+        ran = [e.command for e in model.log if e.reply == "STS 1"]
+    assert ran and seconds >= WARMUP_S, (seconds, model.commands)  # it ran, and was waited out
+    assert not model.xray_on and model.state == SourceState.STANDBY
+
+
+def test_a_forced_a_warm_up_that_never_begins_is_switched_off_and_not_called_done():
+    """The unit answers a forced ``WUP`` but stays in standby, done: nothing says a warm-up ran, so
+    after ``warmup_start_s`` the driver switches off (confirmed) and says it did not start, where
+    it returned "warm-up done" on the first poll."""
+    model = L8121Model(dialect="A", warmed_up=True, warmup_s=WARMUP_S, ramp_s=RAMP_S)
+    model.warm_up_starts_late(float("inf"))
+    with PtyServer(model) as server, driver(server, "A", warmup_start_s=0.2) as src:
+        with pytest.raises(DeviceError) as err:
+            src.warm_up(force=True, progress=False)
+        assert not src.may_be_on
+    said = str(err.value)
+    assert "\n" not in said and "warm-up did not start" in said, said
+    assert said.endswith("X-rays switched off"), said
+    assert err.value.switch_off.confirmed and "XOF" in model.commands[model.commands.index("WUP") :]
 
 
 def test_the_guardian_tells_whose_off_it_passed_on_after_a_reconnect_while_on():

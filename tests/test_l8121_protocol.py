@@ -211,6 +211,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("SPC", "SPC 0uA"),
                 ("SIN", "INTER LOCK ON"),  # the interlock again, last before the start command
                 ("SER", "SER 0"),  # and no controller error standing
+                ("DAG", "AGING 1 0 YET"),  # and the warm-up still due: else this XON is an exposure
                 ("XON", "XON"),
                 ("STS", "AGING"),
                 ("SIN", "INTER LOCK ON"),
@@ -252,6 +253,7 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("SPC", "SPC 0uA"),
         ("SIN", "INTER LOCK ON"),
         ("SER", "SER 0"),
+        ("DAG", "AGING 1 0 YET"),
         ("XON", "XON"),
         ("STS", "XON"),  # an exposure, not AGING
         ("XOF", "XOF"),

@@ -1375,6 +1375,24 @@ def test_silent_starts_a_body_cut_by_the_frame_from_its_motion_on_the_images():
     assert abs(turn - 3.0) < 0.3, turn
 
 
+def test_a_cut_body_of_a_frame_too_thin_for_its_edge_band_gets_no_start():
+    """Review s46rv: a frame binned to two rows (8 x 200000 px: binned by 4 for the silhouette's
+    0.1 Mpx) keeps no pixel once the edge band (a binned pixel wide) is left out of the cut body's
+    region, and the refinement took the largest distance of none: numpy's "zero-size array"
+    ValueError. No region to fit over is no start, said."""
+    from radiokit.register._global import frame_cut_affine
+
+    rng = np.random.default_rng(0)
+    x = np.arange(200_000, dtype=np.float32)
+    fixed, moving = (
+        np.broadcast_to((np.abs(x - c) < 60_000).astype(np.float32), (8, x.size))
+        + 0.01 * rng.standard_normal((8, x.size), dtype=np.float32)
+        for c in (150_000, 149_000)
+    )
+    a, why = frame_cut_affine(fixed, moving)
+    assert a is None and "no affine map fits" in why, why
+
+
 def test_a_frame_filling_texture_is_not_made_worse_by_the_cut_start(monkeypatch):
     """A textured plate fills the frame (its Otsu side cut by the frame's edge): the refined start
     is the best affine map of a local motion, and ``silent``'s lattices must not end further from

@@ -64,6 +64,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import math
 import os
 import random
 import select
@@ -212,6 +213,7 @@ class L8121Model:
         self._silent_executes = False
         self._standby_when_due = False  # A's STS reads 2 while a warm-up is due (standby_when_warm_up_due)
         self._swe_lag_s = 0.0  # A's SWE still reads 1 this long after the warm-up ended (swe_lags)
+        self._start_lag_s = 0.0  # A's warm-up begins this long after WUP is answered (warm_up_starts_late)
         self._delay_s = 0.0
         self._delay_once: tuple[float, str | None] | None = None
         self._hold_once: tuple[str | None] | None = None  # (command or None for any), once
@@ -435,6 +437,14 @@ class L8121Model:
         (``L8121.md`` does not relate them)."""
         with self._lock:
             self._swe_lag_s = float(seconds)
+
+    def warm_up_starts_late(self, seconds: float) -> None:
+        """Let dialect A's warm-up begin ``seconds`` of model time after ``WUP`` is answered (``inf``:
+        never), the state meanwhile unchanged; an ``XOF`` in between does not cancel it (it stops a
+        warm-up running, as :meth:`_xof` does). ``L8121.md`` ties no state to ``WUP``'s echo, and
+        says nothing of what ``XOF`` does to a start not yet begun."""
+        with self._lock:
+            self._start_lag_s = float(seconds)
 
     def _state_a(self) -> SourceState:
         """The state dialect A's ``STS`` and ``SAR`` report."""
@@ -736,9 +746,16 @@ class L8121Model:
             return self._refuse(ErrorCode.STATE)
         if self._interlock_open:
             return self._refuse(ErrorCode.INTERLOCK)
-        if self._state != SourceState.WARMING_UP:
+        if self._state != SourceState.WARMING_UP and self._start_lag_s > 0:
+            if math.isfinite(self._start_lag_s):
+                self._schedule(t + self._start_lag_s, self._start_late)
+        elif self._state != SourceState.WARMING_UP:
             self._start_warm_up(t)
         return "WUP"
+
+    def _start_late(self, t):
+        if self._state in (SourceState.STANDBY, SourceState.WARMUP_NEEDED):  # not over an overload
+            self._start_warm_up(t)
 
     def _start_warm_up(self, t):
         self._state, self._warmup, self._warmup_t0 = SourceState.WARMING_UP, WarmupState.RUNNING, t

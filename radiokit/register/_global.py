@@ -307,6 +307,8 @@ def refine(
     gy, gx = (ndimage.spline_filter(g) for g in np.gradient(ms))
     ms = ndimage.spline_filter(ms)
     yy, xx = np.nonzero(_region(body, inside))
+    if yy.size <= 6 + (gain_degree + 1) * (gain_degree + 2):  # fewer pixels than the fit's parameters
+        return None  # (a frame binned to two rows keeps none once its edge band is left out)
     pos = np.vstack([yy, xx]).astype(np.float64) * k + (k - 1) / 2  # full-resolution (row, col)
     d = pos - start.fixed_centre[:, None]
     reach = max(float(np.sqrt((d**2).sum(axis=0)).max()), 1.0)
