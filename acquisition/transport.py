@@ -1043,9 +1043,13 @@ class SerialTransport:
         for the L8121-01, and a three-wire cable (or an adapter without the line) reads DSR low
         with a controller that answers: so DSR refuses nothing and is read only to say why a
         controller may be silent. A port without modem lines (a pty: ``OSError``; ``socket://``:
-        always high) says nothing."""
+        always high) says nothing. Only a local port's line is read: a network link's modem lines
+        are its terminal server's, which ``rfc2217://`` polls over the network, so each read could
+        wait pyserial's network time-out (3 s) inside a switch-off's wait (review s46rv)."""
+        if not isinstance(self._serial, serial.Serial):  # serialposix / serialwin32: a local port
+            return ""
         try:
-            low = self._serial is not None and self._serial.dsr is False
+            low = self._serial.dsr is False
         except (serial.SerialException, OSError, ValueError, AttributeError, NotImplementedError):
             return ""
         if not low:

@@ -372,6 +372,25 @@ def test_a_silent_port_whose_dsr_reads_low_says_so(dsr, monkeypatch):
     assert "\n" not in summary and summary.count("DSR low") == (dsr is False), summary
 
 
+def test_a_network_links_dsr_is_not_read_for_a_silent_controller(monkeypatch):
+    """Review s46rv: a network link's DSR is its terminal server's (``rfc2217://`` polls it over
+    the network, each read up to pyserial's 3 s network time-out, inside a switch-off's wait
+    too), so the silent controller's line reads DSR on local ports only. A real, silent TCP
+    listener; the socket link's DSR property is replaced by one that fails if read."""
+    from serial.urlhandler import protocol_socket
+
+    def read(self):
+        raise AssertionError("DSR read on a network link")
+
+    monkeypatch.setattr(protocol_socket.Serial, "dsr", property(read))
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        url = f"socket://127.0.0.1:{silent.getsockname()[1]}"
+        with SerialTransport(url, timeout_s=0.1, retries=0) as lnk:
+            with pytest.raises(DeviceError, match="no reply to STS within 0.1 s") as err:
+                lnk.query("STS")
+    assert "DSR" not in str(err.value), err.value
+
+
 class _StalledLink:
     """A port through which this process is stalled across the reply's deadline. A fake -- the
     only way to cause the fault deterministically: a loaded machine, a long garbage collection or
