@@ -742,7 +742,9 @@ class Calibration:
             flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
             bar.set_description("calibrate defects")
             clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
-            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped)
+            cal = cls._from_averages(
+                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, bool(scaling)
+            )
             bar.update(rows)
         cal.provenance.update(layout or {})
         # the files' word for their ADC (a raw preset's: the panel named), kept so that a frame
@@ -754,11 +756,15 @@ class Calibration:
 
     @classmethod
     def _from_averages(
-        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None
+        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None, scaled=False
     ) -> Calibration:
         """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
         ``given``: ``th.saturation`` was the caller's, not guessed from the frames; ``clipped``:
-        each pixel's clipped flat samples kept in its average, :func:`clipped_samples`)."""
+        each pixel's clipped flat samples kept in its average, :func:`clipped_samples`; ``scaled``:
+        the frames are scaled values, whose range does not start at 0 as the half-range rule of
+        :func:`_bright_darks` assumes, so it is not applied: a GDAL OFFSET of 100 called 1-count darks
+        bright)."""
+        top = None if scaled else _known_top(th.saturation, given, dark, flat)
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
             # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
@@ -777,10 +783,8 @@ class Calibration:
             )
             _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
         except ValueError as exc:
-            raise _blame(
-                str(exc), dark, flat, _dark_noise(darks), th, _known_top(th.saturation, given, dark, flat)
-            ) from None
-        bright = _bright_darks(float(np.median(dark)), _known_top(th.saturation, given, dark, flat))
+            raise _blame(str(exc), dark, flat, _dark_noise(darks), th, top) from None
+        bright = _bright_darks(float(np.median(dark)), top)
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
         # after the refusals: a refused map needs no more words; the saturation's lines are said
@@ -1241,18 +1245,18 @@ def value_scaling(meta: dict) -> dict | None:
         return None
     if (float(scale), float(offset)) == (1.0, 0.0) or "stored_dtype" not in meta:
         return None  # (a NODATA or fill code alone: the values are the counts)
-    stored = np.dtype(meta["stored_dtype"])
-    values = np.result_type(np.float32, stored, np.asarray(scale).dtype, np.asarray(offset).dtype)
     text = f"{name} stored * {float(scale):g} + {float(offset):g}"
-    return {"scale": float(scale), "offset": float(offset), "stored": stored, "values": values, "text": text}
+    return {"scale": float(scale), "offset": float(offset), "stored": np.dtype(meta["stored_dtype"]), "text": text}
 
 
 def _scaled_level(stacks, bit_depth, scaling) -> float | None:
     """:func:`saturation_level` of scaled ``stacks`` (:func:`value_scaling`): the top judged on the
     stored counts recovered from the values, given back as a value computed as the reader computes
-    them (the same float32 arithmetic: a pixel stored at the top reads exactly the level). None for
-    a negative scale (the top would be a floor: not judged) or float storage (no ADC's counts)."""
-    scale, offset, stored, values = (scaling[k] for k in ("scale", "offset", "stored", "values"))
+    them, in the values' own type (a pixel stored at the top reads exactly the level: computed in
+    float64, 4095 * 0.01 + 100 passed the float32 pixels' 140.95). None for a negative scale (the
+    top would be a floor: not judged) or float storage (no ADC's counts)."""
+    scale, offset, stored = (scaling[k] for k in ("scale", "offset", "stored"))
+    values = np.result_type(np.float32, *(np.asarray(s).dtype for s in stacks))
     if scale < 0 or stored.kind not in "ui":
         return None
     info = np.iinfo(stored)
@@ -1522,7 +1526,7 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     n_flat_saturated = int(np.count_nonzero(saturated))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(
-            f"the flats are saturated (>= {th.saturation}) in {n_flat_saturated} of "
+            f"the flats are saturated (>= {th.saturation:.7g}) in {n_flat_saturated} of "
             f"{flat.size} pixels: lower the flat exposure (current or time)"
         )
     mask[saturated] |= np.uint32(PixelFlag.OVER_RESPONDING)
@@ -1550,7 +1554,7 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     mask[:, cols_idx] |= cols_bits[None, :]
     if n_flat_saturated:
         warnings.warn(
-            f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation})"
+            f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation:.7g})"
             f"{_clipped_text(clipped, n_flats)}{_saturated_lines_text(*sat_lines)}; "
             "they are flagged, but lower the flat exposure",
             CalibrationWarning,
@@ -1793,7 +1797,7 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dea
         )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(
-            f"the flats are saturated (>= {saturation}) in {n_saturated} of {mask.size} pixels "
+            f"the flats are saturated (>= {saturation:.7g}) in {n_saturated} of {mask.size} pixels "
             f"({100 * n_saturated / mask.size:.1f} %), over the {100 * MAX_DEFECTIVE_SHARE:g} % of the panel a defect "
             "map may mark: lower the flat exposure (tube current or time, or less binning)"
         )

@@ -3093,6 +3093,28 @@ def test_a_scaled_12_bit_flat_clipped_at_its_top_is_still_called_saturated(tmp_p
     assert cal.thresholds.saturation == pytest.approx(expected, rel=1e-6)
 
 
+def test_a_scaled_files_offset_does_not_make_its_darks_bright(tmp_path):
+    """The half-range rule (darks over half the ADC's range carry light) starts the range at 0: in
+    values offset by 100 a 12-bit top reads 140.95, and darks of 100 stored counts (101) passed half
+    of it. Not judged in scaled values; the clipped flats still are."""
+    from radiokit.calibrate import CalibrationWarning
+
+    rng = np.random.default_rng(7)
+    dark = rng.normal(100, 3, (4, 32, 32)).astype(np.uint16)
+    flat = rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16)
+    flat[:, :4, :4] = 4095
+    darks, flats = (
+        read(_gdal_tiff(tmp_path / f"{w}.tif", a, {"SCALE": 0.01, "OFFSET": 100}))
+        for w, a in (("d", dark), ("f", flat))
+    )
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        Calibration.from_frames(darks, flats)
+    told = [str(w.message) for w in seen if issubclass(w.category, CalibrationWarning)]
+    assert any("16 pixels of the flats are saturated" in t for t in told), told
+    assert not any("over half the ADC's range" in t for t in told), told
+
+
 @pytest.mark.parametrize("suffix", [".tif", ".h5"])
 def test_info_counts_a_scaled_files_clipped_pixels_at_its_stored_top(tmp_path, suffix):
     """Review s46rio: `info` said "saturated 256 pixel(s) >= 4095" of the file read as stored, and
