@@ -36,10 +36,12 @@ __all__ = [
     "exposure_factors",
     "adc_top",
     "declared_bit_depth",
+    "declared_scaling",
     "pixel_layout",
     "declared_layout",
     "check_layout",
     "frame_saturation",
+    "value_scaling",
     "judge_frames",
     "judge_darks",
 ]
@@ -140,7 +142,8 @@ class Thresholds:
             ("line_fraction", 0 < self.line_fraction <= 1, "0 < line_fraction <= 1"),
             (
                 "saturation",
-                self.saturation is None or (float(self.saturation).is_integer() and 0 < self.saturation < 1 << 16),
+                # a non-integer level is a scaled file's top in its values (value_scaling)
+                self.saturation is None or not float(self.saturation).is_integer() or 0 < self.saturation < 1 << 16,
                 "an ADC value, 1-65535",
             ),
             ("smooth_block", float(self.smooth_block).is_integer() and self.smooth_block >= 2, "a whole block >= 2 px"),
@@ -653,6 +656,7 @@ class Calibration:
         progress=False,
         bit_depth=None,
         layout=None,
+        scaling=None,
         **thresholds,
     ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
@@ -676,6 +680,10 @@ class Calibration:
             (:func:`pixel_layout`, :func:`declared_layout`); by default what :class:`radiokit.io.Frames`
             say, nothing for plain arrays. Kept in the provenance (``orientation``,
             ``sensor_offset``): frames read otherwise are refused on correction (:func:`check_layout`).
+        scaling : dict, optional
+            How the frames' stored counts became their values (:func:`value_scaling`); by default
+            what :class:`radiokit.io.Frames` say. The saturation level is then the stored top's
+            value (:func:`saturation_level`).
         **thresholds
             Any field of :class:`Thresholds`.
 
@@ -710,12 +718,21 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
+        if scaling is None:
+            scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
         if not given:
-            th = replace(th, saturation=saturation_level(darks, flats, bit_depth=bit_depth))
+            th = replace(th, saturation=saturation_level(darks, flats, bit_depth=bit_depth, scaling=scaling or None))
+            if scaling and th.saturation is None:  # said, never a silent "none saturated"
+                warnings.warn(
+                    f"saturation not checked: the darks' and flats' values are scaled ({scaling['text']}) "
+                    "and their stored top cannot be told from them; pass saturation= in their values",
+                    CalibrationWarning,
+                    stacklevel=2,
+                )
             # the file's word, not a guess (a depth the frames pass is no ADC of theirs: guessed)
             given = bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1
         rows = darks.shape[1]
@@ -725,7 +742,9 @@ class Calibration:
             flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
             bar.set_description("calibrate defects")
             clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
-            cal = cls._from_averages(darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped)
+            cal = cls._from_averages(
+                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, bool(scaling)
+            )
             bar.update(rows)
         cal.provenance.update(layout or {})
         # the files' word for their ADC (a raw preset's: the panel named), kept so that a frame
@@ -737,11 +756,15 @@ class Calibration:
 
     @classmethod
     def _from_averages(
-        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None
+        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None, scaled=False
     ) -> Calibration:
         """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
         ``given``: ``th.saturation`` was the caller's, not guessed from the frames; ``clipped``:
-        each pixel's clipped flat samples kept in its average, :func:`clipped_samples`)."""
+        each pixel's clipped flat samples kept in its average, :func:`clipped_samples`; ``scaled``:
+        the frames are scaled values, whose range does not start at 0 as the half-range rule of
+        :func:`_bright_darks` assumes, so it is not applied: a GDAL OFFSET of 100 called 1-count darks
+        bright)."""
+        top = None if scaled else _known_top(th.saturation, given, dark, flat)
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
             # dropped is a 1-degree-of-freedom estimate whose tail passes noisy_factor (5x) its
@@ -760,10 +783,8 @@ class Calibration:
             )
             _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
         except ValueError as exc:
-            raise _blame(
-                str(exc), dark, flat, _dark_noise(darks), th, _known_top(th.saturation, given, dark, flat)
-            ) from None
-        bright = _bright_darks(float(np.median(dark)), _known_top(th.saturation, given, dark, flat))
+            raise _blame(str(exc), dark, flat, _dark_noise(darks), th, top) from None
+        bright = _bright_darks(float(np.median(dark)), top)
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
         # after the refusals: a refused map needs no more words; the saturation's lines are said
@@ -809,6 +830,7 @@ class Calibration:
             n_cal = sel[ImageKey.DARK].size + sel[ImageKey.FLAT].size
             check_budget(path, n_cal * src.frame_bytes, f"{n_cal} dark and flat frames of {src.frame_shape}")
             bit_depth = src.meta.get("bit_depth")  # the panel's, as recorded (saturation_level)
+            scaling = value_scaling(src.meta) or {}  # ({}: none, not to be asked of plain arrays)
             with _bar(progress, n_cal, f"read {Path(path).name}", "frame") as bar:
                 darks, flats = (_read_counted(src, sel[k], bar) for k in (ImageKey.DARK, ImageKey.FLAT))
         try:
@@ -819,6 +841,7 @@ class Calibration:
                 flat_times=times[sel[ImageKey.FLAT]],
                 progress=progress,
                 bit_depth=bit_depth,
+                scaling=scaling,
                 **thresholds,
             )
         except FrameLevelError as exc:  # named by its frame in the file
@@ -1206,7 +1229,46 @@ def declared_bit_depth(bit_depths: dict) -> int | None:
     return found.popitem()[1] if found else None
 
 
-def saturation_level(*stacks, bit_depth=None) -> int | None:
+def value_scaling(meta: dict) -> dict | None:
+    """How a file's stored counts became the values read (``value = stored * scale + offset``):
+    a GDAL TIFF's SCALE/OFFSET (``meta["gdal_scaling"]``) or an HDF5 dataset's CF packing
+    (``meta["cf_packing"]``), with the stored type (``meta["stored_dtype"]``); None where the
+    values are the stored counts. Why: the saturation rules are in ADC counts, and judged on
+    the values a 12-bit panel's clipped flats (4095 stored, 35.95 after SCALE 0.01 OFFSET -5)
+    were never saturated (review s46rio)."""
+    g, cf = meta.get("gdal_scaling"), meta.get("cf_packing")
+    if g:
+        scale, offset, name = g.get("scale", 1.0), g.get("offset", 0.0), "GDAL SCALE/OFFSET"
+    elif cf:
+        scale, offset, name = cf["scale_factor"], cf["add_offset"], "CF scale_factor/add_offset"
+    else:
+        return None
+    if (float(scale), float(offset)) == (1.0, 0.0) or "stored_dtype" not in meta:
+        return None  # (a NODATA or fill code alone: the values are the counts)
+    text = f"{name} stored * {float(scale):g} + {float(offset):g}"
+    return {"scale": float(scale), "offset": float(offset), "stored": np.dtype(meta["stored_dtype"]), "text": text}
+
+
+def _scaled_level(stacks, bit_depth, scaling) -> float | None:
+    """:func:`saturation_level` of scaled ``stacks`` (:func:`value_scaling`): the top judged on the
+    stored counts recovered from the values, given back as a value computed as the reader computes
+    them, in the values' own type (a pixel stored at the top reads exactly the level: computed in
+    float64, 4095 * 0.01 + 100 passed the float32 pixels' 140.95). None for a negative scale (the
+    top would be a floor: not judged) or float storage (no ADC's counts)."""
+    scale, offset, stored = (scaling[k] for k in ("scale", "offset", "stored"))
+    values = np.result_type(np.float32, *(np.asarray(s).dtype for s in stacks))
+    if scale < 0 or stored.kind not in "ui":
+        return None
+    info = np.iinfo(stored)
+    finite = [np.asarray(s, np.float64)[np.isfinite(s)] for s in stacks]  # (fill codes read NaN)
+    counts = [np.clip(np.rint((f - offset) / scale), info.min, info.max).astype(stored) for f in finite]
+    top = saturation_level(*counts, bit_depth=bit_depth) if all(c.size for c in counts) else None
+    if top is None:
+        return None
+    return float(values.type(top) * values.type(scale) + values.type(offset))
+
+
+def saturation_level(*stacks, bit_depth=None, scaling=None) -> int | float | None:
     """The saturation level of frames ``stacks`` (the ADC value at and above which a pixel is
     clipped): radiokit's one rule, applied by ``calibrate`` (recorded in the calibration, which
     ``correct`` counts every frame against, integer or float), and ``info``.
@@ -1221,7 +1283,12 @@ def saturation_level(*stacks, bit_depth=None) -> int | None:
 
     Float frames of no declared depth get the top their values fit, as wider integers do
     (``info`` shows no saturation for them: floats are no ADC's words; ``correct`` counts them
-    against their calibration's level). None: no level (floats beyond 65535)."""
+    against their calibration's level). None: no level (floats beyond 65535).
+
+    Scaled values (``scaling``, :func:`value_scaling`): the level of their stored counts, as a value
+    (``top * scale + offset``); None for a negative scale (said by each command: not checked)."""
+    if scaling is not None:
+        return _scaled_level(stacks, bit_depth, scaling)
     if bit_depth is not None:
         declared = (1 << int(bit_depth)) - 1
         if max(float(np.max(s)) for s in stacks) <= declared:
@@ -1459,7 +1526,7 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     n_flat_saturated = int(np.count_nonzero(saturated))
     if n_flat_saturated > flat.size // 2:
         raise ValueError(
-            f"the flats are saturated (>= {th.saturation}) in {n_flat_saturated} of "
+            f"the flats are saturated (>= {th.saturation:.7g}) in {n_flat_saturated} of "
             f"{flat.size} pixels: lower the flat exposure (current or time)"
         )
     mask[saturated] |= np.uint32(PixelFlag.OVER_RESPONDING)
@@ -1487,7 +1554,7 @@ def _defect_map(flat, dark_std, response, th, clipped=None, n_flats=None):
     mask[:, cols_idx] |= cols_bits[None, :]
     if n_flat_saturated:
         warnings.warn(
-            f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation})"
+            f"{n_flat_saturated} pixels of the flats are saturated (>= {th.saturation:.7g})"
             f"{_clipped_text(clipped, n_flats)}{_saturated_lines_text(*sat_lines)}; "
             "they are flagged, but lower the flat exposure",
             CalibrationWarning,
@@ -1730,7 +1797,7 @@ def _check_defect_share(mask, n_saturated=0, saturation=None, response=None, dea
         )
     if n > MAX_DEFECTIVE_SHARE * mask.size and 2 * n_saturated >= n:
         raise ValueError(
-            f"the flats are saturated (>= {saturation}) in {n_saturated} of {mask.size} pixels "
+            f"the flats are saturated (>= {saturation:.7g}) in {n_saturated} of {mask.size} pixels "
             f"({100 * n_saturated / mask.size:.1f} %), over the {100 * MAX_DEFECTIVE_SHARE:g} % of the panel a defect "
             "map may mark: lower the flat exposure (tube current or time, or less binning)"
         )
@@ -1766,6 +1833,28 @@ def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) ->
         "n_flat_saturated": n_flat_saturated,
         "defects": {flag.name.lower(): int(np.count_nonzero(mask & flag)) for flag in flags},
     }
+
+
+def _frames_scaling(darks, flats) -> dict:
+    """The scaling the darks' and flats' :class:`radiokit.io.Frames` share (:func:`declared_scaling`)."""
+    return declared_scaling(
+        {
+            f"{what} {getattr(f, 'path', '')}": value_scaling(getattr(f, "meta", {}))
+            for what, f in (("darks", darks), ("flats", flats))
+        }
+    )
+
+
+def declared_scaling(scalings: dict) -> dict:
+    """The scaling the darks' and flats' files share (``scalings``: each file's name and its
+    :func:`value_scaling`, None where unscaled); {} where none is. Files scaled otherwise (or only
+    some of them) are refused: their values are not one panel's counts, and the dark/flat
+    correction cancels only a scaling they share."""
+    texts = {name.strip(): (s or {}).get("text", "unscaled") for name, s in scalings.items()}
+    if len(set(texts.values())) > 1:
+        named = ", ".join(f"{name} {text}" for name, text in texts.items())
+        raise ValueError(f"the darks' and flats' files are scaled differently ({named}): not one panel's counts")
+    return next((s for s in scalings.values() if s), {})
 
 
 def _bright_darks(dark_median: float, top: int | None) -> str | None:

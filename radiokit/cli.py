@@ -166,7 +166,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
     spaced frames (``every``: all of them)."""
-    from radiokit.calibrate import saturation_level
+    from radiokit.calibrate import saturation_level, value_scaling
 
     lo, hi, saturated, nonfinite, nonfinite_frames = None, None, 0, 0, 0
     n_read = len(src) if every else min(len(src), sample)
@@ -178,10 +178,12 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     # ADC's words: a level only where the file declares a depth.
     held, top, basis = {}, None, None
     bits = src.meta.get("bit_depth")
-    if len(src) and (src.dtype.kind in "ui" or bits is not None):
+    # scaled values (GDAL, CF): the level is of the stored counts, given as a value (review s46rio)
+    scaling = value_scaling(src.meta)
+    if len(src) and (src.dtype.kind in "ui" or bits is not None or scaling):
         held = {int(i): src[int(i)] for i in _spaced(len(src), min(len(src), sample, _SATURATION_FRAMES))}
         stack = np.concatenate([f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()])
-        top = saturation_level(stack, bit_depth=bits) if stack.size else None
+        top = saturation_level(stack, bit_depth=bits, scaling=scaling) if stack.size else None
         declared = bits is not None and top == (1 << int(bits)) - 1
         basis = (
             f"declared {bits}-bit"
@@ -192,6 +194,10 @@ def _describe(path, src, every: bool, sample: int) -> dict:
             if src.dtype.itemsize == 1
             else "from the values"
         )
+        if scaling:  # (a negative scale's top is the values' floor: not judged, said so)
+            basis = f"{basis} of the stored counts, {scaling['text']}" if top is not None else None
+    if scaling and top is None:
+        basis = f"not checked: values scaled ({scaling['text']})"
     for i in picks:
         frame = held.pop(int(i)) if int(i) in held else src[i]
         if frame.dtype.kind == "f":
@@ -213,9 +219,10 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         "dtype": str(src.dtype),
         "range": [lo.item(), hi.item()] if lo is not None else None,
         "frames_read": len(picks),
-        "saturated": saturated if top is not None else None,
+        # a scaled file whose top is not known: "unknown", never a silent 0 or nothing
+        "saturated": saturated if top is not None else "unknown" if scaling else None,
         "saturation": top,
-        "saturation_from": basis if top is not None else None,
+        "saturation_from": basis if top is not None or scaling else None,
         "nonfinite": nonfinite,
         "nonfinite_frames": nonfinite_frames,
         "metadata": _summary(src.meta) | _stack_domain(src) | _assumed_pitch(src),
@@ -325,8 +332,12 @@ def cmd_info(args) -> int:
             # float32 carries about 7 significant digits; float64's repr printed nine more of noise
             lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
             print(f"  range      {lo} .. {hi}{of}")
-        if rep["saturated"] is not None:
-            print(f"  saturated  {rep['saturated']} pixel(s) >= {rep['saturation']} ({rep['saturation_from']}){of}")
+        if rep["saturated"] == "unknown":
+            print(f"  saturated  {rep['saturation_from']}")
+        elif rep["saturated"] is not None:
+            level = rep["saturation"]  # a scaled file's is a float value (float32: 7 digits)
+            level = f"{level:.7g}" if isinstance(level, float) else level
+            print(f"  saturated  {rep['saturated']} pixel(s) >= {level} ({rep['saturation_from']}){of}")
         if rep["nonfinite"]:
             k, read_ = rep["nonfinite_frames"], rep["frames_read"]
             plural = "s" if read_ > 1 else ""  # (one frame of one: "1 of 1 frames" read wrong)
@@ -433,12 +444,15 @@ def _in_given_order(errors, paths) -> list:
     )
 
 
-def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None) -> np.ndarray:
+def _stack(
+    paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None, scalings=None
+) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
     bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
-    pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`)."""
-    from radiokit.calibrate import pixel_layout
+    pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
+    file's :func:`radiokit.calibrate.value_scaling`."""
+    from radiokit.calibrate import pixel_layout, value_scaling
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
@@ -456,6 +470,8 @@ def _stack(paths, hints, key=None, progress=False, origins=None, bit_depths=None
                 total += len(src) * src.frame_bytes
                 if bit_depths is not None:
                     bit_depths[str(p)] = src.meta.get("bit_depth")
+                if scalings is not None:  # its values' scaling (a GDAL or CF file's): the level's unit
+                    scalings[str(p)] = value_scaling(src.meta)
                 if layouts is not None:
                     layouts[str(p)] = pixel_layout(src.meta)
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
@@ -479,8 +495,21 @@ def _hdf5_name(path) -> None:
         raise ValueError(f"{path}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
 
 
+def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
+    """What the dark and flat files say of themselves, as :meth:`Calibration.from_frames` takes it:
+    their bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess, where their pixels
+    lie, and their values' scaling (a GDAL or CF file's: the saturation level's unit)."""
+    from radiokit.calibrate import declared_bit_depth, declared_layout, declared_scaling
+
+    return {
+        "bit_depth": declared_bit_depth(bits),
+        "layout": declared_layout(layouts),
+        "scaling": declared_scaling(scalings),
+    }
+
+
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, declared_bit_depth, declared_layout, line_summary
+    from radiokit.calibrate import Calibration, FrameLevelError, line_summary
     from radiokit.io import FormatError, atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
@@ -501,21 +530,18 @@ def cmd_calibrate(args) -> int:
         # experiment-style file holds darks and flats, told apart by image_key
         _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
         _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints, origins, bits, layouts = _raw_hints(args), {"dark": [], "flat": []}, {}, {}
+        hints, origins, bits, layouts, scalings = _raw_hints(args), {"dark": [], "flat": []}, {}, {}, {}
         _judge_files(args.dark, args.flat, hints)
-        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts)
-        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts)
-        layout = declared_layout(layouts)  # before averaging: darks and flats read alike
+        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts, scalings)
+        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts, scalings)
+        declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
         if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
             raise ValueError(
                 f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
                 f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
             )
         try:
-            # the files' own bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess
-            cal = Calibration.from_frames(
-                darks, flats, progress=_progress(args), bit_depth=declared_bit_depth(bits), layout=layout, **th
-            )
+            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
         except FrameLevelError as exc:  # the stack's index, named as the file's frame
             path, index = origins[exc.kind][exc.index]
             raise FormatError(path, f"frame {index} ({exc})") from exc

@@ -633,7 +633,7 @@ def _warn_saturated(path, saturated: dict, level) -> None:
     _warn_per_step(
         path,
         saturated,
-        f"saturated pixels (>= {level})",
+        "saturated pixels" if level is None else f"saturated pixels (>= {level:.7g})",  # (a scaled file's: float32)
         "their intensity is unknown; check that they lie outside the ROIs, or lower the exposure",
     )
 

@@ -3055,6 +3055,110 @@ def test_info_says_a_gdal_tiffs_values_are_scaled_and_a_lone_frame_is_one(tmp_pa
     assert re.search(r"nonfinite\s+1 pixel\(s\) NaN or inf in 1 of 1 frame$", res.stdout, re.M), res.stdout
 
 
+def _clipped_12_bit(path, stored, scaled):
+    """``stored`` (uint16 counts) written GDAL-scaled (a .tif) or CF-packed (an .h5), as stored
+    unscaled if not ``scaled``: SCALE 0.01, OFFSET -5 (a 12-bit top of 4095 reads 35.95)."""
+    if path.suffix == ".tif":
+        return _gdal_tiff(path, stored, {"SCALE": 0.01, "OFFSET": -5} if scaled else {})
+    with h5py.File(path, "w") as f:
+        ds = f.create_dataset("frames", data=stored)
+        if scaled:
+            ds.attrs["scale_factor"], ds.attrs["add_offset"] = np.float32(0.01), np.float32(-5)
+    return path
+
+
+_H5_FRAMES = {".h5": {"dataset": "/frames"}}
+
+
+def _clipped_darks_flats(tmp_path, suffix, scaled):
+    rng = np.random.default_rng(7)
+    dark = rng.normal(100, 3, (4, 32, 32)).astype(np.uint16)
+    flat = rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16)
+    flat[:, :4, :4] = 4095  # a clipped corner, 16 pixels in every frame
+    return (_clipped_12_bit(tmp_path / f"{what}{suffix}", a, scaled) for what, a in (("d", dark), ("f", flat)))
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+@pytest.mark.parametrize("suffix", [".tif", ".h5"])
+def test_a_scaled_12_bit_flat_clipped_at_its_top_is_still_called_saturated(tmp_path, suffix, scaled):
+    """Review s46rio: the saturation rules are in ADC counts; judged in a GDAL-scaled (or CF-packed)
+    file's values a 12-bit panel's top (4095 stored, 35.95 scaled) was never reached, and calibrate's
+    "lower the flat exposure" went unsaid. The level is the stored top's value, 4095 * 0.01 - 5."""
+    from radiokit.calibrate import CalibrationWarning
+
+    darks, flats = (read(p, **_H5_FRAMES.get(suffix, {})) for p in _clipped_darks_flats(tmp_path, suffix, scaled))
+    with pytest.warns(CalibrationWarning, match="16 pixels of the flats are saturated"):
+        cal = Calibration.from_frames(darks, flats)
+    expected = 4095 * 0.01 - 5 if scaled else 4095
+    assert cal.thresholds.saturation == pytest.approx(expected, rel=1e-6)
+
+
+def test_a_scaled_files_offset_does_not_make_its_darks_bright(tmp_path):
+    """The half-range rule (darks over half the ADC's range carry light) starts the range at 0: in
+    values offset by 100 a 12-bit top reads 140.95, and darks of 100 stored counts (101) passed half
+    of it. Not judged in scaled values; the clipped flats still are."""
+    from radiokit.calibrate import CalibrationWarning
+
+    rng = np.random.default_rng(7)
+    dark = rng.normal(100, 3, (4, 32, 32)).astype(np.uint16)
+    flat = rng.normal(3000, 30, (4, 32, 32)).astype(np.uint16)
+    flat[:, :4, :4] = 4095
+    darks, flats = (
+        read(_gdal_tiff(tmp_path / f"{w}.tif", a, {"SCALE": 0.01, "OFFSET": 100}))
+        for w, a in (("d", dark), ("f", flat))
+    )
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        Calibration.from_frames(darks, flats)
+    told = [str(w.message) for w in seen if issubclass(w.category, CalibrationWarning)]
+    assert any("16 pixels of the flats are saturated" in t for t in told), told
+    assert not any("over half the ADC's range" in t for t in told), told
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".h5"])
+def test_info_counts_a_scaled_files_clipped_pixels_at_its_stored_top(tmp_path, suffix):
+    """Review s46rio: `info` said "saturated 256 pixel(s) >= 4095" of the file read as stored, and
+    nothing once its values were scaled: 16 clipped pixels in each of 4 frames."""
+    _, flats = _clipped_darks_flats(tmp_path, suffix, True)
+    res = run_cli("info", flats, *(["--dataset", "/frames"] if suffix == ".h5" else []))
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"saturated\s+64 pixel\(s\) >= 35\.95\d* \(from the values of the stored counts", res.stdout), (
+        res.stdout
+    )
+
+
+def test_calibrate_and_correct_count_a_gdal_scaled_panels_clipped_pixels(tmp_path):
+    """Review s46rio, the commands' words: calibrate's "N pixels of the flats are saturated" went
+    unsaid and correct said "0 saturated" for a projection clipped in 9 pixels, all scaled alike."""
+    dark, flat = _clipped_darks_flats(tmp_path, ".tif", True)
+    res = run_cli("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    cal = Calibration.load(tmp_path / "cal.h5")
+    assert cal.provenance["n_flat_saturated"] == 16, cal.provenance
+    assert cal.thresholds.saturation == pytest.approx(4095 * 0.01 - 5, rel=1e-6)
+    proj = np.full((1, 32, 32), 1500, np.uint16)
+    proj[0, 10:13, 10:13] = 4095
+    path = _clipped_12_bit(tmp_path / "p.tif", proj, True)
+    res = run_cli("correct", path, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"\b9 saturated", res.stdout + res.stderr), res.stdout + res.stderr
+
+
+def test_a_negatively_scaled_files_saturation_is_said_unchecked_not_zero(tmp_path):
+    """A negative SCALE makes the stored top the values' floor: not judged, and said so rather than
+    reported as no pixel saturated."""
+    stored = np.full((2, 16, 16), 3000, np.uint16)
+    stored[:, :2, :2] = 4095
+    path = _gdal_tiff(tmp_path / "n.tif", stored, {"SCALE": -0.01, "OFFSET": 50})
+    res = run_cli("info", "--json", path)
+    assert res.returncode == 0, res.stderr
+    import json
+
+    rep = json.loads(res.stdout)
+    rep = rep[0] if isinstance(rep, list) else rep
+    assert rep["saturated"] == "unknown" and "not checked: values scaled" in rep["saturation_from"], rep
+
+
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"

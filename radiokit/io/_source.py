@@ -1493,6 +1493,8 @@ class FrameSource:
         if self._line is not None or self._invert is not None:
             raise FormatError(self.path, "TIFF is GDAL-scaled and ImageJ-calibrated or MinIsWhite: ambiguous")
         self.meta["gdal_scaling"] = {"scale": 1.0, "offset": 0.0} | found
+        # the stored type: the ADC's top is of stored counts (radiokit.calibrate.value_scaling)
+        self.meta["stored_dtype"] = str(np.dtype(page.dtype).newbyteorder("="))
         return {
             "scale_factor": found.get("scale", 1.0),
             "add_offset": found.get("offset", 0.0),
@@ -1546,6 +1548,7 @@ class FrameSource:
             meta = {"format": "hdf5", "dataset": dataset}
             if self._packing is not None:  # unpacked to the values the file's writer packed
                 meta["cf_packing"] = {k: self._packing[k] for k in ("scale_factor", "add_offset")}
+                meta["stored_dtype"] = str(data.dtype.newbyteorder("="))  # (value_scaling)
             if self._invert is not None:
                 meta["white_is_zero"] = True  # inverted to counts, as a MinIsWhite TIFF
             column_major = _matlab_array(self.path, self._h5, data)
