@@ -49,6 +49,13 @@ def pytest_configure(config):
         os.environ.setdefault(name, "1")
     threadpool_limits(limits=1)
     cv2.setNumThreads(1)
+    # Ctrl-C as a terminal's shell gives it: a suite started in the background (`make test &`,
+    # nohup) inherits SIGINT ignored, Python then installs no KeyboardInterrupt handler, and the
+    # commands the tests start inherit the ignore, so every test of a stop by SIGINT failed
+    # ("finished" where "interrupted" was due; session 46). A handled signal is reset to its
+    # default in a child, an ignored one stays ignored.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_report_header(config):
