@@ -931,7 +931,8 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
 # The checks judge a field on the observed object it keeps in the frame (:func:`_judged`); one
 # that carries more than this share of it out leaves the rest to judge it on, and under half of
 # what the pair showed is too little to trust it by (the interior's observed share has the same
-# line, _MIN_OBSERVED; not tuned: no right field of the TRAINING benches comes near it).
+# line, _MIN_OBSERVED; not tuned: it fired on no TRAINING result of the turned and phantom
+# benches, session 47; benchmarks/README.md, "Pixels carried out of the frame leave the data term").
 _MIN_IN_FRAME = 0.5
 
 
