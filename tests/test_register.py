@@ -1445,6 +1445,52 @@ def test_pixels_the_field_carries_out_of_the_frame_leave_the_data_term():
     assert _epe(reg.displacement, truth, np.ones((size, size), bool))[1] < 0.05
 
 
+def _edge_body(size, shift, seed=0):
+    """A textureless rounded body at 0.75 of the frame's width, its right rim just past the
+    frame's edge, shifted by ``shift`` (rows, columns): ``fixed(x) = moving(x + shift)``, so a
+    column shift carries the fixed frame's right strip out of the moving frame, and brings in the
+    rim the moving frame does not hold. ``(fixed, moving, truth)``."""
+    rng = np.random.default_rng(seed)
+    cy, cx = 0.5 * size, 0.75 * size
+
+    def body(y, x):
+        u, v = (y - cy) / (0.3 * size), (x - cx) / (0.36 * size)
+        return np.sqrt(np.clip(1 - u**4 - v**4, 0, None))
+
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    fixed, moving = (body(yy + a, xx + b) + 0.01 * rng.standard_normal(yy.shape) for a, b in (shift, (0, 0)))
+    truth = np.stack([np.full(yy.shape, shift[0]), np.full(yy.shape, shift[1])]).astype(np.float32)
+    return fixed.astype(np.float32), moving.astype(np.float32), truth
+
+
+def test_the_checks_leave_out_the_pixels_the_field_carries_out_of_the_frame():
+    """Where the field carries a pixel out of the frame the warped moving image is the frame's
+    border replicated, no observation; the data term leaves those pixels out (session 46), and the
+    checks read them as structure left misaligned: the true field of a body shifted 12 px across
+    the frame's edge (96 px) was flagged, its residual "still moving" 0.53 px (36 % misaligned;
+    ``abandon_px``'s measure the same). Left out, the true field's step is the noise's (a tenth of
+    the line), while a field 2 px off is still caught; a field that carries (nearly) all of the
+    observed object out leaves nothing to judge it on and is not trusted."""
+    from radiokit.register import _MAX_MISALIGNED, _MAX_RESIDUAL_MOTION, Quality, _assess, coarse_residual_motion
+
+    fixed, moving, truth = _edge_body(96, (0.0, 12.0))
+
+    def judged(d):
+        reg = Registration(np.ascontiguousarray(d, np.float32), "planted", Quality())
+        _assess(reg, fixed, moving, None, {}, 0.0)
+        return reg.quality
+
+    q = judged(truth)
+    assert q.ok, q.reason
+    assert q.residual_motion < 0.1 * _MAX_RESIDUAL_MOTION and q.misaligned_fraction < 0.1 * _MAX_MISALIGNED
+    assert coarse_residual_motion(fixed, moving, None)[2](truth) < 0.1 * _MAX_RESIDUAL_MOTION
+    off = judged(truth + np.float32([2.0, 0.0])[:, None, None])
+    assert not off.ok and "still moves" in off.reason, off.reason
+    for cols in (40.0, 96.0):  # 70 % and all of the observed body carried out
+        q = judged(truth + np.float32([0.0, cols])[:, None, None])
+        assert not q.ok and "out of the frame" in q.reason, q.reason
+
+
 def test_silent_preset_registers_a_compressed_textureless_slab():
     """The side view's failure in small: a textureless slab compressed by 8 % along the rows and
     widened by 4 % (about 8 px at its ends), a 10 % gain across it. ``default`` cannot tell where
