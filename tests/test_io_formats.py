@@ -1373,6 +1373,25 @@ def test_a_tifffile_stack_of_one_column_frames_reads_as_its_frames(tmp_path, sha
             read(path)
 
 
+@pytest.mark.parametrize("shape, axes", [((5, 10, 1), "ZYX"), ((2, 3, 10, 1), "TZYX")])
+def test_an_imagej_stack_of_one_column_frames_is_named_so_not_truncated(tmp_path, shape, axes):
+    """s47: tifffile's ImageJ writer stores (5, 10, 1) frames, axes ZYX, as one 5 x 10 page under
+    images=5, which tifffile's own reader calls invalid: refused as "truncated" (one page), or read
+    as 2 frames of 3 x 10, each three frames side by side, with a "cut short?" warning (several)."""
+    path = tmp_path / "columns.tif"
+    tifffile.imwrite(
+        path, _frames(math.prod(shape[:-2]), *shape[-2:]).reshape(shape), imagej=True, metadata={"axes": axes}
+    )
+    n = math.prod(shape[:-2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the refusal, not a warning before it
+        with pytest.raises(
+            FormatError, match=rf"columns\.tif: .*images={n}.* {n} frames of 10x1 .*imagej=True"
+        ) as info:
+            read(path)
+    assert "truncated" not in str(info.value) and "\n" not in str(info.value)
+
+
 @pytest.mark.parametrize("axes", [None, "YXS"])
 def test_a_tifffile_image_of_one_trailing_sample_still_reads_as_one_frame(tmp_path, axes):
     """An (rows, cols, 1) image (a channel axis of one) is one frame, as tifffile's own axes

@@ -1086,6 +1086,8 @@ class FrameSource:
             shape = tif.shaped_metadata[0].get("shape", [])
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
+        if tif.is_imagej:
+            _refuse_imagej_trimmed(self.path, first, len(pages), images)
         if len(pages) > 1 and tif.is_imagej and isinstance(images, int) and images != len(pages):
             # ImageJ counts every image it wrote: a chain of another length was cut short (a
             # crashed writer) or edited, and reads as the pages there are, which the user should know
@@ -2304,6 +2306,25 @@ def _white_is_zero(path, data):
             "is defined for unsigned integers only; save the frames with 0 as black",
         )
     return True if kind == "b" else np.iinfo(data.dtype).max
+
+
+def _refuse_imagej_trimmed(path, first, pages, images) -> None:
+    """Refuse an ImageJ TIFF of one-column frames whose pages tifffile's ImageJ writer stored
+    without their trailing 1: (5, 10, 1), axes ZYX, is one 5 x 10 page under ``images=5``, which
+    tifffile calls "ImageJ series metadata invalid" and read as 5 frames of 5 x 10 was refused as
+    truncated (one page) or read as the pages, each k frames side by side (several)."""
+    if not isinstance(images, int) or len(first.shape) != 2 or first.shape[0] < 2 or not first.dataoffsets:
+        return
+    # one page followed by all of images pages is a stack over 4 GB, as ImageJ writes it (_contiguous_stack)
+    whole = int(first.dataoffsets[0]) + images * first.size * first.dtype.itemsize <= first.parent.filehandle.size
+    if images == pages * first.shape[0] != pages and not (pages == 1 and whole):
+        raise FormatError(
+            path,
+            f"its ImageJ description says images={images}, and its {pages} page(s) of {first.shape[0]}x"
+            f"{first.shape[1]} hold {images} frames of {first.shape[1]}x1 (tifffile's ImageJ writer drops an "
+            "(n, rows, 1) stack's trailing 1; ImageJ and tifffile cannot read it back): not read; write one-column "
+            "frames without imagej=True (tifffile's own description keeps their axes)",
+        )
 
 
 #: fewer rows or columns than a radiograph has: frames this narrow are a line detector's, or the
