@@ -618,11 +618,14 @@ def cmd_correct(args) -> int:
         f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
         f"at {summary['frames_per_second']:.1f} frames/s"
     )
+    saturated = f"{summary['saturated']} saturated"
+    if summary["saturated"] == "unknown":  # as info says it: never "0 saturated" of frames not checked
+        saturated = f"saturation {summary['saturation_from']}"
     print(
         f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
         # the count holds NaN and inf raw pixels too (PixelFlag.NONPOSITIVE): "non-positive" alone
         # said 100 NaN pixels were opaque
-        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive or non-finite (filled)"
+        f"{saturated}; {summary['nonpositive']} non-positive or non-finite (filled)"
     )
     return 0
 

@@ -3200,6 +3200,30 @@ def test_a_negatively_scaled_files_saturation_is_said_unchecked_not_zero(tmp_pat
     assert rep["saturated"] == "unknown" and "not checked: values scaled" in rep["saturation_from"], rep
 
 
+def test_correct_says_a_negatively_scaled_calibrations_saturation_was_not_checked(tmp_path):
+    """s47: calibrate warned that a negative SCALE's saturation is not checked, but the calibration
+    then took the ADC top its scaled averages implied (4095, values of 10 to 40 never reach it),
+    and correct said "0 saturated" of a projection whose 9 pixels sit at the stored top."""
+    rng = np.random.default_rng(3)
+    scale = {"SCALE": -0.01, "OFFSET": 50}  # value = 50 - stored / 100: the stored top is the floor
+    dark = _gdal_tiff(tmp_path / "d.tif", rng.normal(4000, 3, (4, 32, 32)).astype(np.uint16), scale)
+    flat = _gdal_tiff(tmp_path / "f.tif", rng.normal(1000, 30, (4, 32, 32)).astype(np.uint16), scale)
+    proj = np.full((1, 32, 32), 2000, np.uint16)
+    proj[0, :3, :3] = 4095
+    proj = _gdal_tiff(tmp_path / "p.tif", proj, scale)
+    res = run_cli("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    cal = Calibration.load(tmp_path / "cal.h5")
+    assert cal.thresholds.saturation is None, cal.thresholds
+    from radiokit.correct import correct_files
+
+    summary = correct_files([proj], cal, tmp_path / "api.h5", progress=False)
+    assert summary["saturated"] == "unknown" and "not checked" in summary["saturation_from"], summary
+    res = run_cli("correct", proj, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    assert res.returncode == 0, res.stderr
+    assert "saturation not checked" in res.stdout and " 0 saturated" not in res.stdout, res.stdout
+
+
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):
     # tifffile keeps a code it does not know as an int: "cannot be read as tiff: 'int' object has
     # no attribute 'name'"
