@@ -182,7 +182,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     scaling = value_scaling(src.meta)
     if len(src) and (src.dtype.kind in "ui" or bits is not None or scaling):
         held = {int(i): src[int(i)] for i in _spaced(len(src), min(len(src), sample, _SATURATION_FRAMES))}
-        stack = np.concatenate([f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()])
+        parts = [f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()]
+        stack = parts[0] if len(parts) == 1 else np.concatenate(parts)  # one frame: no copy of it
         top = saturation_level(stack, bit_depth=bits, scaling=scaling) if stack.size else None
         declared = bits is not None and top == (1 << int(bits)) - 1
         basis = (
