@@ -2658,6 +2658,11 @@ def test_process_says_its_own_remedy_by_the_readers_advice_field_not_by_its_word
         assert "x.h5: linked data" in text and said not in text
         assert "radiokit process reads no data outside the experiment file" in text
     assert not hasattr(cli, "_EXTERNAL_HOW")
+    # many files (process_many): the error crosses to the command line as its slot's words and advice
+    from radiokit.pipeline import _error_result
+
+    text = cli._batch_error(_error_result(str(tmp_path / "x.h5"), err))
+    assert said not in text and "radiokit process reads no data outside the experiment file" in text
 
 
 @pytest.mark.parametrize("where, said", [(10**6, "lies beyond the end of the 16-byte file"), (0, "offset 0")])
