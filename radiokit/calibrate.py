@@ -589,7 +589,9 @@ class Calibration:
         ``mean(flat - dark)`` over valid pixels: the manual's grey-level scale.
     thresholds : Thresholds
     provenance : dict
-        Frame counts, times, software version, averaging method.
+        Frame counts, times, software version, averaging method; ``saturation_not_checked``, why
+        the darks' and flats' saturation level is not known (a negative scale: ``thresholds.
+        saturation`` stays None, not the ADC top the scaled averages would imply).
 
     Examples
     --------
@@ -627,7 +629,8 @@ class Calibration:
                 f"dark {self.dark.shape}, flat {self.flat.shape} and mask {self.mask.shape} "
                 "must be the same (rows, cols) shape"
             )
-        if self.thresholds.saturation is None:  # built from plain data: the ADC its averages imply
+        # built from plain data: the ADC its averages imply (not where the level is known to be unknown)
+        if self.thresholds.saturation is None and not self.provenance.get("saturation_not_checked"):
             self.thresholds = replace(self.thresholds, saturation=adc_top(*given))
         # A pixel without response cannot be corrected, whoever built the mask: always fill it.
         unusable = ~((self.flat - self.dark) > self.thresholds.eps)
@@ -743,7 +746,7 @@ class Calibration:
             bar.set_description("calibrate defects")
             clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
             cal = cls._from_averages(
-                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, bool(scaling)
+                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, scaling
             )
             bar.update(rows)
         cal.provenance.update(layout or {})
@@ -761,9 +764,10 @@ class Calibration:
         """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
         ``given``: ``th.saturation`` was the caller's, not guessed from the frames; ``clipped``:
         each pixel's clipped flat samples kept in its average, :func:`clipped_samples`; ``scaled``:
-        the frames are scaled values, whose range does not start at 0 as the half-range rule of
-        :func:`_bright_darks` assumes, so it is not applied: a GDAL OFFSET of 100 called 1-count darks
-        bright)."""
+        the frames' scaling (:func:`value_scaling`), if any: scaled values, whose range does not
+        start at 0 as the half-range rule of :func:`_bright_darks` assumes, so it is not applied: a
+        GDAL OFFSET of 100 called 1-count darks bright; their saturation, where ``th.saturation``
+        is None, is said unjudged in the provenance)."""
         top = None if scaled else _known_top(th.saturation, given, dark, flat)
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
@@ -796,6 +800,8 @@ class Calibration:
         provenance = _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated)
         # filled as lines, but the flats' saturation's: kept apart so that every summary says so
         provenance["saturated_lines"] = {"rows": sat_rows.tolist(), "columns": sat_cols.tolist()}
+        if scaled and th.saturation is None:  # (from_frames warned) kept, so that correct says "not checked"
+            provenance["saturation_not_checked"] = f"values scaled ({scaled['text']})"
         return cls(
             dark,
             flat,
@@ -1377,7 +1383,7 @@ def _unused_low_bits(stacks, most=8) -> int:
         return 0
     bits = most
     for s in stacks:
-        zeros = np.bincount(_TRAILING_ZEROS[(s & 0xFF).astype(np.uint8)].ravel(), minlength=9)
+        zeros = np.bincount(_TRAILING_ZEROS, weights=_low_bytes(s), minlength=9)
         bits = min(bits, next(b for b in range(most, -1, -1) if zeros[:b].sum() <= ADC_OUTLIER_SHARE * s.size))
     # Noise-free frames (synthetic, or a constant flat at a round number such as 4064 = 0xFE0)
     # leave low bits unused too, and would put the top at their own level: every pixel
@@ -1386,6 +1392,17 @@ def _unused_low_bits(stacks, most=8) -> int:
     # asked for once, and flats clipped in nearly every pixel (2 levels) beside such darks kept
     # the top at 65535: never saturated, the calibration accepted.
     return bits if bits and np.unique(sample >> bits).size >= _MSB_LEVELS else 0
+
+
+def _low_bytes(stack, block=1 << 18) -> np.ndarray:
+    """How many of integer ``stack``'s values have each low byte (256 counts), ``block`` values at
+    a time: ``np.bincount`` of the whole stack's bytes made an int64 copy of it, 8 bytes a pixel
+    (one 8000 x 8000 frame: 488 MiB; ``radiokit info`` peaked at 870 MB, benchmarks/README.md)."""
+    flat = np.ravel(stack)
+    counts = np.zeros(256, np.int64)
+    for start in range(0, flat.size, block):
+        counts += np.bincount((flat[start : start + block] & 0xFF).astype(np.uint8), minlength=256)
+    return counts
 
 
 def frame_saturation(saturation, raw, defects=None) -> int | None:

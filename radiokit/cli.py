@@ -182,7 +182,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     scaling = value_scaling(src.meta)
     if len(src) and (src.dtype.kind in "ui" or bits is not None or scaling):
         held = {int(i): src[int(i)] for i in _spaced(len(src), min(len(src), sample, _SATURATION_FRAMES))}
-        stack = np.concatenate([f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()])
+        parts = [f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()]
+        stack = parts[0] if len(parts) == 1 else np.concatenate(parts)  # one frame: no copy of it
         top = saturation_level(stack, bit_depth=bits, scaling=scaling) if stack.size else None
         declared = bits is not None and top == (1 << int(bits)) - 1
         basis = (
@@ -618,11 +619,14 @@ def cmd_correct(args) -> int:
         f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
         f"at {summary['frames_per_second']:.1f} frames/s"
     )
+    saturated = f"{summary['saturated']} saturated"
+    if summary["saturated"] == "unknown":  # as info says it: never "0 saturated" of frames not checked
+        saturated = f"saturation {summary['saturation_from']}"
     print(
         f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
         # the count holds NaN and inf raw pixels too (PixelFlag.NONPOSITIVE): "non-positive" alone
         # said 100 NaN pixels were opaque
-        f"{summary['saturated']} saturated; {summary['nonpositive']} non-positive or non-finite (filled)"
+        f"{saturated}; {summary['nonpositive']} non-positive or non-finite (filled)"
     )
     return 0
 
@@ -690,9 +694,10 @@ def _as_typed(bounds):
     return tuple(int(v) if math.isfinite(v) and v.is_integer() and abs(v) < 2**53 else v for v in bounds)
 
 
-def _process_error(text, args) -> str:
+def _process_error(text, args, advice=None) -> str:
     """A ``Config`` or pipeline line in the command line's words: its fields as the options, a
-    given ROI echoed as typed (``--inclusion 10.5 20 10 20``), ``roi_units='mm'`` as ``--mm``."""
+    given ROI echoed as typed (``--inclusion 10.5 20 10 20``), ``roi_units='mm'`` as ``--mm``, and
+    a reader's advice of an option process lacks (``advice``: :func:`_reader_advice`) as its own."""
     for field, option in _PROCESS_OPTIONS.items():
         if text.startswith(field):
             text = option + text[len(field) :]
@@ -701,23 +706,32 @@ def _process_error(text, args) -> str:
         if bounds is not None:
             typed = f"--{name} {' '.join(str(v) for v in bounds)}"
             text = text.replace(f"{name} ROI {bounds!r}", typed).replace(f"--{name} {bounds!r}", typed)
-    for how, instead in _EXTERNAL_HOW.items():  # the readers' remedy: an option of info, calibrate, correct, register
-        text = text.replace(how, instead)
+    for option, said in (advice or {}).items():
+        text = text.replace(said, _PROCESS_ADVICE.get(option, said))
     return text.replace("roi_units='mm'", "--mm")
 
 
-#: how the readers say data outside the file may be read (radiokit.io), and what process says
-#: instead: it has no --allow-external (its inputs' links are not followed into its outputs' checks)
-_EXTERNAL_HOW = {
-    "(allow_external=True; --allow-external)": "(radiokit process reads no data outside the experiment file: "
-    "copy the linked data into it first)",
-    "is read with --allow-external (allow_external=True)": "is not read by radiokit process: copy the linked "
-    "data into the file first",
-    # process has no --dataset either: it reads experiment files only (s46: it named the option)
-    "pass --dataset PATH (dataset= in Python) to read one": "radiokit process reads experiment files only "
-    "(radiokit correct --dataset PATH reads one)",
-    "(pass dataset='/path/to/frames', on the command line --dataset, to read another layout)": "(radiokit process "
-    "reads experiment files only; radiokit correct --dataset PATH reads another layout)",
+def _reader_advice(exc) -> dict:
+    """The reader options ``exc`` advises and its words for each (``FormatError.advice``), of
+    each error of an ``InputErrors`` and of the error it was raised from too."""
+    found, seen = {}, set()
+    stack = [exc]
+    while stack:
+        e = stack.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        found.update(getattr(e, "advice", {}))
+        stack += [*getattr(e, "errors", ()), e.__cause__, e.__context__]
+    return found
+
+
+#: what process says in place of a reader's advice (FormatError.advice) of an option it does not
+#: have: it has no --allow-external (its inputs' links are not followed into its outputs' checks)
+#: nor --dataset (it reads experiment files only)
+_PROCESS_ADVICE = {
+    "allow_external": "(radiokit process reads no data outside the experiment file: copy the linked data into it first)",
+    "dataset": "radiokit process reads experiment files only (radiokit correct --dataset PATH reads one)",
 }
 
 
@@ -1061,7 +1075,7 @@ def cmd_process(args) -> int:
                 args.files, cfg, 1 if single else local_workers(args.workers, len(args.files), cores())
             )
         except ValueError as exc:
-            text = _process_error(str(exc), args)
+            text = _process_error(str(exc), args, _reader_advice(exc))
             if text == str(exc):
                 raise
             raise ValueError(text) from exc
@@ -1069,7 +1083,7 @@ def cmd_process(args) -> int:
         try:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
-            text = _process_error(str(exc), args)
+            text = _process_error(str(exc), args, _reader_advice(exc))
             if any(str(f) in text for f in inputs):  # named already (the control, say)
                 if text == str(exc):
                     raise
@@ -1103,7 +1117,7 @@ def _process_many(args, cfg) -> int:
             connect_timeout_s=args.scheduler_timeout,
         )
     except ValueError as exc:  # a refusal before any work (the workers' memory): in the options' words
-        raise ValueError(_process_error(str(exc), args)) from None
+        raise ValueError(_process_error(str(exc), args, _reader_advice(exc))) from None
     failed = 0
     for r in results:
         if "error" in r:
@@ -1126,7 +1140,7 @@ def _batch_error(result, args=None) -> str:
     options' names, ``--overwrite`` for the API's ``--overwrite (overwrite=True)``."""
     from radiokit.io import OutputExistsError
 
-    return _process_error(result["error"], args).replace(OutputExistsError.HOW, "--overwrite")
+    return _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
 
 
 def _all_ok(record) -> bool:

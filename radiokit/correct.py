@@ -1002,7 +1002,17 @@ def correct_files(
         "domain": domain,
         "seconds": elapsed,
         "frames_per_second": n_plan / elapsed if elapsed else float("inf"),
-        "saturated": sat_total,
+        **_saturation_summary(cal, sat_total),
         "nonpositive": np_total,
         "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects,
     }
+
+
+def _saturation_summary(cal: Calibration, counted: int) -> dict:
+    """``saturated``, the pixels counted at or above the calibration's level, or "unknown" with
+    ``saturation_from`` saying why where it has none (a negatively scaled panel's): "0 saturated"
+    was said of frames never checked, as ``info`` says "unknown" of them."""
+    if cal.thresholds.saturation is not None:
+        return {"saturated": counted}
+    why = cal.provenance.get("saturation_not_checked") or "the calibration holds no saturation level"
+    return {"saturated": "unknown", "saturation_from": f"not checked: {why}"}

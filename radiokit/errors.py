@@ -8,13 +8,26 @@ class RadiokitError(Exception):
 class FormatError(RadiokitError, ValueError):
     """A file is not what it claims or what was asked for.
 
-    The message always names the file and what is wrong with it.
+    The message always names the file and what is wrong with it. ``advice`` maps each reader
+    option the message advises (``"allow_external"``, ``"dataset"``) to the very words that advise
+    it, so that a command without that option (``radiokit process``) says its own remedy in their
+    place by this field, not by matching the text: a rewording of the reader's message cannot
+    silently leave the wrong advice.
     """
 
-    def __init__(self, path, problem):
+    def __init__(self, path, problem, *, advice=None):
         self.path = str(path)
         self.problem = problem
+        self.advice = dict(advice or {})
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):
+        # an exception is rebuilt from its args, the whole message: the path and the fields were lost
+        return _format_error, (type(self), self.path, self.problem, self.advice)
+
+
+def _format_error(kind, path, problem, advice):
+    return kind(path, problem, advice=advice)
 
 
 class InputErrors(RadiokitError, ValueError):

@@ -1608,8 +1608,9 @@ def process_many(
     Their memory is shared likewise: a file (with ``config.control``) whose processing would need
     more than a worker's share of its host's budget (:func:`_memory_shares`) refuses the whole run
     before any work, a ``ValueError`` naming it. Returns, per file, its results dict, or
-    ``{"source": path, "error": message, "error_type": class name}`` for a file that failed (the
-    others go on; :func:`_error_result`). Output folders are :func:`output_folders`; each is
+    ``{"source": path, "error": message, "error_type": class name}`` for a file that failed (and
+    ``"advice"``, the reader options its message advises, ``FormatError.advice``, where it has
+    any); the others go on (:func:`_error_result`). Output folders are :func:`output_folders`; each is
     written as :func:`process` writes."""
     try:
         from dask.distributed import Client, as_completed
@@ -1920,4 +1921,6 @@ def _error_result(path, exc) -> dict:
         text = kind
     elif not user:
         text = f"{kind}: {text}"
-    return {"source": path, "error": text, "error_type": kind}
+    slot = {"source": path, "error": text, "error_type": kind}
+    # the reader options the words advise (FormatError.advice), for a caller without them to reword
+    return slot | ({"advice": dict(exc.advice)} if getattr(exc, "advice", None) else {})

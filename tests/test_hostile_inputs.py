@@ -2641,6 +2641,30 @@ def test_process_refusing_another_layout_names_no_option_it_does_not_have(tmp_pa
     assert "pass --dataset" not in res.stderr
 
 
+def test_process_says_its_own_remedy_by_the_readers_advice_field_not_by_its_words(tmp_path):
+    """s47: process replaced the readers' advice of --allow-external and --dataset by matching
+    their text (cli._EXTERNAL_HOW): a rewording of a reader's message would silently have left
+    advice of an option process does not have. The error names the words it advises with."""
+    import pickle
+
+    from radiokit import cli
+
+    said = "(any words the reader may choose)"
+    err = FormatError(tmp_path / "x.h5", f"linked data {said}", advice={"allow_external": said})
+    text = cli._process_error(str(err), None, cli._reader_advice(ValueError("wrapped").with_traceback(None)))
+    assert said in text  # no advice given: nothing replaced
+    for given in (err, pickle.loads(pickle.dumps(err))):
+        text = cli._process_error(str(given), None, cli._reader_advice(given))
+        assert "x.h5: linked data" in text and said not in text
+        assert "radiokit process reads no data outside the experiment file" in text
+    assert not hasattr(cli, "_EXTERNAL_HOW")
+    # many files (process_many): the error crosses to the command line as its slot's words and advice
+    from radiokit.pipeline import _error_result
+
+    text = cli._batch_error(_error_result(str(tmp_path / "x.h5"), err))
+    assert said not in text and "radiokit process reads no data outside the experiment file" in text
+
+
 @pytest.mark.parametrize("where, said", [(10**6, "lies beyond the end of the 16-byte file"), (0, "offset 0")])
 def test_a_tiff_whose_first_ifd_is_not_there_says_where_it_points(tmp_path, where, said):
     """s46: a header pointing its first IFD past the end (a file cut short, a header rewritten)

@@ -1373,22 +1373,63 @@ def test_a_tifffile_stack_of_one_column_frames_reads_as_its_frames(tmp_path, sha
             read(path)
 
 
+@pytest.mark.parametrize("shape, axes", [((5, 10, 1), "ZYX"), ((2, 3, 10, 1), "TZYX")])
+def test_an_imagej_stack_of_one_column_frames_is_named_so_not_truncated(tmp_path, shape, axes):
+    """s47: tifffile's ImageJ writer stores (5, 10, 1) frames, axes ZYX, as one 5 x 10 page under
+    images=5, which tifffile's own reader calls invalid: refused as "truncated" (one page), or read
+    as 2 frames of 3 x 10, each three frames side by side, with a "cut short?" warning (several)."""
+    path = tmp_path / "columns.tif"
+    tifffile.imwrite(
+        path, _frames(math.prod(shape[:-2]), *shape[-2:]).reshape(shape), imagej=True, metadata={"axes": axes}
+    )
+    n = math.prod(shape[:-2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the refusal, not a warning before it
+        with pytest.raises(
+            FormatError, match=rf"columns\.tif: .*images={n}.* {n} frames of 10x1 .*imagej=True"
+        ) as info:
+            read(path)
+    assert "truncated" not in str(info.value) and "\n" not in str(info.value)
+
+
 @pytest.mark.parametrize("axes", [None, "YXS"])
 def test_a_tifffile_image_of_one_trailing_sample_still_reads_as_one_frame(tmp_path, axes):
     """An (rows, cols, 1) image (a channel axis of one) is one frame, as tifffile's own axes
-    (YXQ, YXS) say; without axes, the one line says how a stack of one-column frames is told."""
-    image = _frames(1)[0]
+    (YXQ, YXS) say, and silently: s46 warned at every read of any such image without axes, though
+    frames of one column are read so only where the image is too thin to be a radiograph."""
+    image = _frames(1, 64, 48)[0]
     path = tmp_path / "image.tif"
     tifffile.imwrite(path, image[..., None], **({"metadata": {"axes": axes}} if axes else {}))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         got = read(path)
     np.testing.assert_array_equal(got.data, image[None])
-    said = [str(w.message) for w in caught]
-    if axes is None:
-        assert any("image.tif" in s and "(30, 40, 1)" in s and "axes" in s for s in said), said
-    else:
-        assert not said, said
+    assert not [str(w.message) for w in caught]
+
+
+@pytest.mark.parametrize("shape", [(5, 30, 1), (200, 3, 1)])
+def test_a_thin_tifffile_image_without_axes_says_how_one_column_frames_are_told(tmp_path, shape):
+    """A (5, 30, 1) array without axes is a 5 x 30 image to tifffile (YXQ), or 5 frames of 30 x 1
+    (a line detector's): read as tifffile reads it, and the one line says how the other is told."""
+    data = _frames(1, *shape[:2])[0]
+    path = tmp_path / "thin.tif"
+    tifffile.imwrite(path, data[..., None])
+    with pytest.warns(UserWarning, match=rf"thin\.tif: .*{re.escape(str(shape))} without axes.*'axes': 'ZYX'"):
+        got = read(path)
+    np.testing.assert_array_equal(got.data, data[None])
+
+
+def test_a_stack_of_one_column_frames_with_its_axes_given_reads_without_a_warning(tmp_path):
+    """s47: 64 frames of 64 x 1 written with axes "ZYX" still got the warning that the stack may
+    be rows x cols x n (numpy's dstack): the axes the writer gave leave nothing to guess."""
+    frames = _frames(64, 64, 1)
+    path = tmp_path / "lines.tif"
+    tifffile.imwrite(path, frames, metadata={"axes": "ZYX"}, photometric="minisblack")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = read(path)
+    np.testing.assert_array_equal(got.data, frames)
+    assert not [str(w.message) for w in caught]
 
 
 @needs_itex
@@ -3157,6 +3198,30 @@ def test_a_negatively_scaled_files_saturation_is_said_unchecked_not_zero(tmp_pat
     rep = json.loads(res.stdout)
     rep = rep[0] if isinstance(rep, list) else rep
     assert rep["saturated"] == "unknown" and "not checked: values scaled" in rep["saturation_from"], rep
+
+
+def test_correct_says_a_negatively_scaled_calibrations_saturation_was_not_checked(tmp_path):
+    """s47: calibrate warned that a negative SCALE's saturation is not checked, but the calibration
+    then took the ADC top its scaled averages implied (4095, values of 10 to 40 never reach it),
+    and correct said "0 saturated" of a projection whose 9 pixels sit at the stored top."""
+    rng = np.random.default_rng(3)
+    scale = {"SCALE": -0.01, "OFFSET": 50}  # value = 50 - stored / 100: the stored top is the floor
+    dark = _gdal_tiff(tmp_path / "d.tif", rng.normal(4000, 3, (4, 32, 32)).astype(np.uint16), scale)
+    flat = _gdal_tiff(tmp_path / "f.tif", rng.normal(1000, 30, (4, 32, 32)).astype(np.uint16), scale)
+    proj = np.full((1, 32, 32), 2000, np.uint16)
+    proj[0, :3, :3] = 4095
+    proj = _gdal_tiff(tmp_path / "p.tif", proj, scale)
+    res = run_cli("calibrate", "--dark", dark, "--flat", flat, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    cal = Calibration.load(tmp_path / "cal.h5")
+    assert cal.thresholds.saturation is None, cal.thresholds
+    from radiokit.correct import correct_files
+
+    summary = correct_files([proj], cal, tmp_path / "api.h5", progress=False)
+    assert summary["saturated"] == "unknown" and "not checked" in summary["saturation_from"], summary
+    res = run_cli("correct", proj, "--cal", tmp_path / "cal.h5", "-o", tmp_path / "out.h5")
+    assert res.returncode == 0, res.stderr
+    assert "saturation not checked" in res.stdout and " 0 saturated" not in res.stdout, res.stdout
 
 
 def test_a_tiff_of_an_unknown_compression_is_refused_naming_its_code(tmp_path):

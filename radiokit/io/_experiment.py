@@ -989,9 +989,17 @@ def _unclosed(
     )
 
 
+#: the words of a reader's refusal that advise its options (FormatError.advice): a command without
+#: the option (radiokit process) says its own remedy in their place
+EXTERNAL_ADVICE = "(allow_external=True; --allow-external)"
+DATASET_ADVICE = "pass --dataset PATH (dataset= in Python) to read one"
+
+
 def _refuse_external(path, what):
     raise FormatError(
-        path, f"{what}: data outside this file is not read unless asked for (allow_external=True; --allow-external)"
+        path,
+        f"{what}: data outside this file is not read unless asked for {EXTERNAL_ADVICE}",
+        advice={"allow_external": EXTERNAL_ADVICE},
     )
 
 
@@ -1379,7 +1387,8 @@ def check_local(path, h5, ds, allow_external=False) -> None:
             raise FormatError(
                 path,
                 f"{ds.name} is a virtual dataset mapping {shown} of this file: virtual datasets are not read "
-                "unless asked for (allow_external=True; --allow-external), or read the source dataset itself",
+                f"unless asked for {EXTERNAL_ADVICE}, or read the source dataset itself",
+                advice={"allow_external": EXTERNAL_ADVICE},
             )
         _refuse_external(path, f"{ds.name} is a virtual dataset (its data are in other files)")
     if ds.id.get_create_plist().get_external_count():
@@ -2118,21 +2127,31 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
         more = f" and {'more' if len(found) <= shown else f'at least {len(found) - shown} more'}"
     else:
         more = f" and {len(found) - shown} more" if len(found) > shown else ""
-    outside = "; a link into another file is read with --allow-external (allow_external=True)" if linked else ""
+    outside = f"; a link into another file is not read unless asked for {EXTERNAL_ADVICE}" if linked else ""
     return ", ".join(text for _, text in found[:shown]) + more + outside
 
 
-def _not_an_experiment(h5: h5py.File) -> str:
+def _not_an_experiment(path, h5: h5py.File) -> FormatError:
     """Why ``h5`` is no experiment file, and where its frames may be (:func:`frame_candidates`)."""
     listed = frame_candidates(h5)
+    lacks = f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file"
     if listed is None:
-        return f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file (pass dataset='/path/to/frames', on the command line --dataset, to read another layout)"
+        return FormatError(
+            path, f"{lacks}, and could not be looked through: {DATASET_ADVICE}", advice={"dataset": DATASET_ADVICE}
+        )
     if not listed:
-        return f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file and holds no 2-D or 3-D dataset of numbers"
-    return (
-        f"HDF5 file lacks /{FRAMES}: not a radiokit experiment file; it holds {listed}: pass --dataset PATH "
-        "(dataset= in Python) to read one"
+        return FormatError(path, f"{lacks} and holds no 2-D or 3-D dataset of numbers")
+    return FormatError(
+        path,
+        f"{lacks}; it holds {listed}: {DATASET_ADVICE}",
+        advice={"dataset": DATASET_ADVICE} | linked_advice(listed),
     )
+
+
+def linked_advice(listed) -> dict:
+    """The advice of a refusal listing :func:`frame_candidates` (``listed``) that a link among
+    them into another file is read with ``--allow-external``, or none."""
+    return {"allow_external": EXTERNAL_ADVICE} if listed and EXTERNAL_ADVICE in listed else {}
 
 
 def _optional_dataset(path, h5: h5py.File, name: str, allow_external: bool):
@@ -2196,7 +2215,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
 
     check_links(path, h5, FRAMES, allow_external)
     if FRAMES not in h5:
-        raise FormatError(path, _not_an_experiment(h5))
+        raise _not_an_experiment(path, h5)
     data = checked_dataset(path, h5, FRAMES, "iuf", range(33), allow_external, written=False, budget=budget)
     if data.ndim != 3:
         raise FormatError(path, f"/{FRAMES} has shape {data.shape}; expected (n, rows, cols)")

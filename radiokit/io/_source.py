@@ -31,6 +31,7 @@ from radiokit.io._experiment import (
     check_written,
     checked_dataset,
     frame_candidates,
+    linked_advice,
     read_bit_depth,
     read_experiment_meta,
     read_pixel_sizes,
@@ -265,7 +266,8 @@ class FrameSource:
                 raise FormatError(
                     self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
                 )
-            if self.format in ("tiff", "hdf5") and not self._transposed:  # MATLAB's order is read as MATLAB shows it
+            # MATLAB's order is read as MATLAB shows it; frames of the axes a tifffile writer gave, as given
+            if self.format in ("tiff", "hdf5") and not self._transposed and not self._axes_given():
                 _warn_frames_last(self.path, self.n, self.frame_shape)
             if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
                 raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
@@ -1002,14 +1004,38 @@ class FrameSource:
                 f"TIFF IFD after page {len(pages) - 1} (offset {following}) is not a readable IFD: corrupt",
             )
 
+    def _no_dataset(self, dataset) -> FormatError:
+        """``dataset`` is no dataset of the file: what it holds there instead (an NXdata group, as a
+        viewer shows it), or, one --dataset being read from every input, what the file holds."""
+        if isinstance(self._h5.get(dataset), h5py.Group):
+            listed = frame_candidates(self._h5[dataset])
+            said = f"no dataset {dataset!r}: a group" + (f", holding {listed}" if listed else "")
+        else:
+            listed = frame_candidates(self._h5)
+            said = f"no dataset {dataset!r}" + (f"; it holds {listed}" if listed else "")
+        return FormatError(self.path, said, advice=linked_advice(listed))
+
+    def _axes_given(self) -> bool:
+        """A TIFF whose tifffile description gives the axes of a stack ("ZYX", "TZYX"): its writer
+        said which are frames, rows and columns, so there is nothing for a warning to guess."""
+        if self.format != "tiff" or not self._tif.is_shaped or not self._pages:
+            return False
+        try:
+            meta = strict_json.loads(self._pages[0].shaped_description or "")
+            shape, axes = meta["shape"], meta.get("axes")
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+            return False
+        return isinstance(axes, str) and isinstance(shape, list) and len(axes) == len(shape) > 2 and axes[-2:] == "YX"
+
     def _trimmed_stack(self, first, pages) -> dict | None:
         """The geometry of frames of one column (or one pixel) tifffile stored as fewer, larger
         pages, else None. Why: tifffile drops an array's trailing 1s from the pages it writes, so
         five 30 x 1 frames, axes "ZYX", fill one 5 x 30 page: read as the page, one frame,
         transposed. The axes its writer gave say which are rows and columns; without any, tifffile's
-        own (YXQ: a channel of one) make the page an image, read so and said (an (H, W, 1) array is
-        far more often an image with a channel axis than frames of one column). The frames are read
-        as raw frames where the pages are one uncompressed run, as tifffile writes them."""
+        own (YXQ: a channel of one) make the page an image, read so, and said only where the page
+        is thinner than a radiograph (:data:`_THIN`; s47: an (H, W, 1) image of any size warned at
+        every read, though one H x W is no stack of H one-column frames). The frames are read as
+        raw frames where the pages are one uncompressed run, as tifffile writes them."""
         shape, axes = _trimmed_description(first)
         if shape is None or self._tif.is_imagej:
             return None
@@ -1019,7 +1045,7 @@ class FrameSource:
             raise FormatError(self.path, f"{what} in a TIFF of several such series (one per write): not read")
         if math.prod(shape) != len(pages) * math.prod(first.shape):
             return None
-        if axes is None:
+        if axes is None and min(first.shape) < _THIN:
             warnings.warn(
                 f"{self.path}: its tifffile description says shape {tuple(shape)} without axes: read as "
                 f"{len(pages)} frame(s) of {first.shape[0]}x{first.shape[1]}, as tifffile takes its axes "
@@ -1029,6 +1055,7 @@ class FrameSource:
                 UserWarning,
                 stacklevel=5,  # the caller of read() / open_frames()
             )
+        if axes is None:
             return None
         dtype = np.dtype(first.dtype).newbyteorder(self._tif.byteorder)
         offset, size = int(first.dataoffsets[0]), math.prod(first.shape) * dtype.itemsize
@@ -1059,6 +1086,8 @@ class FrameSource:
             shape = tif.shaped_metadata[0].get("shape", [])
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
+        if tif.is_imagej:
+            _refuse_imagej_trimmed(self.path, first, len(pages), images)
         if len(pages) > 1 and tif.is_imagej and isinstance(images, int) and images != len(pages):
             # ImageJ counts every image it wrote: a chain of another length was cut short (a
             # crashed writer) or edited, and reads as the pages there are, which the user should know
@@ -1526,15 +1555,8 @@ class FrameSource:
                     raise FormatError(self.path, missing)
         if dataset:
             check_links(self.path, self._h5, dataset, self._allow_external)  # before following any
-            if isinstance(self._h5.get(dataset), h5py.Group):  # an NXdata group, as a viewer shows it
-                listed = frame_candidates(self._h5[dataset])
-                raise FormatError(
-                    self.path, f"no dataset {dataset!r}: a group" + (f", holding {listed}" if listed else "")
-                )
-            if dataset not in self._h5 or not isinstance(self._h5[dataset], h5py.Dataset):
-                # one --dataset is read from every input: a file of another layout says what it holds
-                listed = frame_candidates(self._h5)
-                raise FormatError(self.path, f"no dataset {dataset!r}" + (f"; it holds {listed}" if listed else ""))
+            if not isinstance(self._h5.get(dataset), h5py.Dataset):
+                raise self._no_dataset(dataset)
             if self._h5[dataset].ndim not in (2, 3):
                 raise FormatError(
                     self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
@@ -2286,13 +2308,37 @@ def _white_is_zero(path, data):
     return True if kind == "b" else np.iinfo(data.dtype).max
 
 
+def _refuse_imagej_trimmed(path, first, pages, images) -> None:
+    """Refuse an ImageJ TIFF of one-column frames whose pages tifffile's ImageJ writer stored
+    without their trailing 1: (5, 10, 1), axes ZYX, is one 5 x 10 page under ``images=5``, which
+    tifffile calls "ImageJ series metadata invalid" and read as 5 frames of 5 x 10 was refused as
+    truncated (one page) or read as the pages, each k frames side by side (several)."""
+    if not isinstance(images, int) or len(first.shape) != 2 or first.shape[0] < 2 or not first.dataoffsets:
+        return
+    # one page followed by all of images pages is a stack over 4 GB, as ImageJ writes it (_contiguous_stack)
+    whole = int(first.dataoffsets[0]) + images * first.size * first.dtype.itemsize <= first.parent.filehandle.size
+    if images == pages * first.shape[0] != pages and not (pages == 1 and whole):
+        raise FormatError(
+            path,
+            f"its ImageJ description says images={images}, and its {pages} page(s) of {first.shape[0]}x"
+            f"{first.shape[1]} hold {images} frames of {first.shape[1]}x1 (tifffile's ImageJ writer drops an "
+            "(n, rows, 1) stack's trailing 1; ImageJ and tifffile cannot read it back): not read; write one-column "
+            "frames without imagej=True (tifffile's own description keeps their axes)",
+        )
+
+
+#: fewer rows or columns than a radiograph has: frames this narrow are a line detector's, or the
+#: strips of frames stored along another axis (_warn_frames_last, _trimmed_stack)
+_THIN = 16
+
+
 def _warn_frames_last(path, n, shape) -> None:
     """Warn of a stack of ``n`` frames of ``shape`` whose columns are far fewer than its frames and
     rows, as frames stacked along the last axis (numpy's ``dstack``, IDL and Fortran writers; a
     TIFF tifffile wrote from such an array) store rows x cols x n: read as (n, rows, cols), each
     "frame" is a strip of every image, and every command then worked on strips without a word."""
     rows, cols = shape
-    if cols < 16 and min(n, rows) >= 64 and 8 * cols <= min(n, rows):
+    if cols < _THIN and min(n, rows) >= 64 and 8 * cols <= min(n, rows):
         warnings.warn(
             f"{path}: reads as {n} frames of {rows}x{cols}; if it is a stack stored rows x cols x n ({cols} frames "
             f"of {n}x{rows}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
