@@ -748,6 +748,19 @@ def _aging(text: str) -> Aging:
     return Aging(int(m.group(1)), int(m.group(2)), m.group(3) == "END")
 
 
+def _beam_above(kv: float, ua: float, set_kv: float, set_ua: float, drop_fraction: float) -> str | None:
+    """What a measured beam exceeds its setting by, as far past it as the drop bound is below it
+    (``2 - drop_fraction`` of the set value, and a reading's step), or None. L8121.md calls only an
+    overload state a fault; a regulator running the beam away while STS still reads XON was
+    exposed on (review s47acq: 144 kV 600 µA at a set 60 kV 250 µA, past the 75 W rating)."""
+    bound = 2 - drop_fraction
+    if ua > bound * set_ua + _READING_STEP:
+        return f"measured current {ua:g} µA, above {bound:.0%} of the set {set_ua} µA"
+    if kv > bound * set_kv + _READING_STEP:
+        return f"measured voltage {kv:g} kV, above {bound:.0%} of the set {set_kv} kV"
+    return None
+
+
 # -- the declarations -----------------------------------------------------------------------------
 class Query:
     """A query: ``command`` and the parser of its reply.
@@ -2984,6 +2997,11 @@ class L8121:
                 continue
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
+            # a ramp from zero after XON never passes the setting by the drop bound's margin (one
+            # after set_values() starts from the old values, which may lie that far above)
+            above = _beam_above(m_kv, m_ua, kv, ua, c.beam_drop_fraction) if after_xon else None
+            if above is not None:
+                self._trip(f"beam above the setting: {above}")
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():
                 self._trip("interlock open")
@@ -3059,6 +3077,9 @@ class L8121:
                 dropped = f"measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
             elif kv < f * set_kv:
                 dropped = f"measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
+            above = _beam_above(kv, ua, set_kv, set_ua, f)
+            if dropped is None and above is not None:
+                return f"beam above the setting: {above}"
             if dropped is not None:
                 # B reads state, voltage and current in separate exchanges: a process stopped
                 # after its STS read XON measures the beam the guardian's watchdog switched off
@@ -3143,8 +3164,8 @@ class L8121:
 
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
         state other than X-rays on, or a measured current (or voltage) below
-        ``beam_drop_fraction`` of the set value switches off and raises :class:`SourceFault` naming
-        which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
+        ``beam_drop_fraction`` of the set value (or above it by as much: ``2 - beam_drop_fraction``
+        of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
 
         A poll is routine: when another thread switches off meanwhile, that ``XOF`` goes right after

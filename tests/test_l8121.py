@@ -12,6 +12,7 @@ queries only, and refuses a device that speaks neither.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -1925,6 +1926,10 @@ def test_b_warm_up_refused_when_the_switch_is_local_after_connect():
         (L8121Model.open_interlock, "interlock open"),
         (L8121Model.overload, "overload"),
         (L8121Model.drop_beam, "beam dropped: measured current 0 µA"),
+        # the state stays XON and no overload trips: 400 µA at a set 250 (review s47acq: checked
+        # only below beam_drop_fraction, the series went on at 2.4 times the kV and µA set)
+        (functools.partial(L8121Model.runaway, ua_factor=1.6), "beam above the setting: measured current 400 µA"),
+        (functools.partial(L8121Model.runaway, kv_factor=2.4), "beam above the setting: measured voltage 144 kV"),
     ],
 )
 def test_check_stops_on_a_fault(source, inject, reason):
@@ -1944,6 +1949,21 @@ def test_check_stops_on_a_fault(source, inject, reason):
     if reason != "overload":
         assert "XOF" in [e.command for e in model.log if e.t >= t_fault]
     assert "RST" not in model.commands
+
+
+def test_on_stops_a_beam_that_ramps_past_its_setting(warm, dialect):
+    """A beam that ramps to 144 kV after XON at a set 60 kV (a unit emitting at other values
+    than the ones read back: a regulator fault, or presets lost in a restart) is no ramp towards
+    the setting: on() switched off only at stable_timeout_s, after seconds of it (review s47acq)."""
+    model, server = warm
+    model.runaway(kv_factor=2.4)
+    with driver(server, dialect, stable_timeout_s=2) as src:
+        t0 = time.monotonic()
+        with pytest.raises(SourceFault, match="beam above the setting: measured voltage") as info:
+            src.on(60, 250)
+        assert time.monotonic() - t0 < 1.5  # a poll or two past the ramp, not the stable time-out
+    assert "X-rays switched off" in str(info.value)
+    assert not model.xray_on
 
 
 def test_garbage_while_on_switches_off(source, wire):

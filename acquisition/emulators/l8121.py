@@ -203,6 +203,7 @@ class L8121Model:
         self._set_kv, self._set_ua = int(kv_min), 0
         self._ramp_t0, self._ramp_from = 0.0, (0.0, 0.0)
         self._beam_dropped = False
+        self._runaway = (1.0, 1.0)  # measured kV, µA factors of a runaway beam (runaway())
         self._interlock_open = False
         self._focus = 0
         self._error = ErrorCode.NONE
@@ -387,6 +388,16 @@ class L8121Model:
         def fault(t):
             if self._state == SourceState.XRAY_ON:
                 self._beam_dropped = True
+
+        self._at(at_s, fault)
+
+    def runaway(self, kv_factor: float = 1.0, ua_factor: float = 1.0, at_s: float | None = None) -> None:
+        """Let the measured beam run away now, or at model time ``at_s``: kV and µA read
+        ``kv_factor`` and ``ua_factor`` times the setting while the state stays X-rays on and no
+        overload trips (an emission regulator gone wrong; L8121.md names only the overload state)."""
+
+        def fault(t):
+            self._runaway = (float(kv_factor), float(ua_factor))
 
         self._at(at_s, fault)
 
@@ -802,6 +813,7 @@ class L8121Model:
         f = 1.0 if self.ramp_s <= 0 else min(1.0, max(0.0, (t - self._ramp_t0) / self.ramp_s))
         kv0, ua0 = self._ramp_from
         kv, ua = kv0 + (self._set_kv - kv0) * f, ua0 + (self._set_ua - ua0) * f
+        kv, ua = kv * self._runaway[0], ua * self._runaway[1]
         return kv, (0.0 if self._beam_dropped else ua)
 
     def _retarget(self, t):
