@@ -836,14 +836,17 @@ def cmd_register(args) -> int:
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
     quality = vars(q) | reg.run_record()
-    write_registration(
-        args.output,
-        RegistrationRecord(
-            reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
-        ),
-        overwrite=args.overwrite,
-        inputs=inputs,
+    record = RegistrationRecord(
+        reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
     )
+    with contextlib.ExitStack() as figure:
+        # the figure is drawn into its temporary before the field is renamed into place, and
+        # renamed itself just after: a Ctrl-C (or a refused figure) while matplotlib drew left
+        # the new field beside the previous run's figure, "no partial output was left" said
+        if args.png:
+            tmp = figure.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs))
+            _register_png(tmp, fixed, moving, registered, reg)
+        write_registration(args.output, record, overwrite=args.overwrite, inputs=inputs)
     print(
         f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
         f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
@@ -869,8 +872,6 @@ def cmd_register(args) -> int:
         )
     print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
     if args.png:
-        with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:
-            _register_png(tmp, fixed, moving, registered, reg)
         print(f"figure {args.png}")
     return 0 if q.ok else 1
 

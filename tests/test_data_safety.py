@@ -120,6 +120,32 @@ def test_an_existing_output_needs_overwrite(cmd, experiment, images, tmp_path):
     no_temporaries(tmp_path)
 
 
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
+def test_register_stopped_while_drawing_its_figure_keeps_the_previous_field(stop, images, tmp_path, monkeypatch):
+    """`register -o reg.h5 --png reg.png --overwrite` stopped while matplotlib drew the figure
+    (Ctrl-C, or the figure's folder refusing it): reg.h5 had already been replaced by the new
+    field beside the old figure, and the command said "interrupted; no partial output was left".
+    The figure is drawn before the field is renamed into place: both stay the previous run's."""
+    from radiokit import cli
+
+    fixed, moving = images
+    field, figure = tmp_path / "reg.h5", tmp_path / "reg.png"
+    args = ["register", fixed, moving, "-o", field, "--png", figure, "--overwrite"]
+    assert run_cli(*args).returncode in (0, 1)
+    before = {p: sha(p) for p in (field, figure)}
+
+    def draw_then_stop(path, *rest):
+        Path(path).write_bytes(b"half a figure")
+        raise stop(errno.EIO, "stopped while drawing") if stop is OSError else stop()
+
+    monkeypatch.setattr(cli, "_register_png", draw_then_stop)
+    res = run_cli(*args)
+    assert res.returncode == (130 if stop is KeyboardInterrupt else 2), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr, res.stderr
+    assert {p: sha(p) for p in before} == before  # was: reg.h5 the new field, reg.png the old figure
+    no_temporaries(tmp_path)
+
+
 @pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
 def test_a_read_only_output_is_refused_even_with_overwrite(cmd, experiment, images, tmp_path):
     """A file its owner made read-only (chmod a-w) was replaced by --overwrite, as a writable
