@@ -870,10 +870,29 @@ def cmd_register(args) -> int:
                 else "not run (already flagged)"
             )
         )
-    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
+    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}"))
     if args.png:
         print(f"figure {args.png}")
     return 0 if q.ok else 1
+
+
+#: NCC before registering below which a flagged pair is taken for each other's negative
+_NEGATIVE_NCC = -0.5
+
+
+def _negative_hint(q) -> str:
+    """Why a flagged pair may be unregistrable as given: each other's negative (NCC well below 0
+    before registering), the mark of two pixel conventions (line integrals, brighter where more
+    attenuating, against counts or transmission, darker): no motion maps one onto the other, and
+    the flag alone said "did not find the motion". (Mutual information aligns such a pair, but
+    the checks, which compare intensities, flag it all the same.)"""
+    if not q.ncc_before < _NEGATIVE_NCC:
+        return ""
+    return (
+        f"; the images are each other's negative (NCC {q.ncc_before:.2f} before registering): one in line "
+        "integrals -ln(I/I0), the other in counts or transmission? register two of one convention "
+        "(radiokit correct --domain)"
+    )
 
 
 @contextlib.contextmanager
