@@ -960,8 +960,24 @@ def _process_config(args, opts):
         regularisation_check=args.regularisation_check,
         view=args.view,
         control=str(args.control) if args.control else None,
-        cross_check=None if args.cross_check in ("none", "") else args.cross_check,
+        cross_check=_cross_check(args),
     )
+
+
+def _cross_check(args) -> str | None:
+    """``--cross-check`` as Config takes it: ncc when not given (skipped where ncc is the method
+    itself), None for none. The method itself, asked for, is refused: a second run of one method
+    checks nothing, and Config skipped it without a word (a user read the run as cross-checked)."""
+    if args.cross_check is None:
+        return "ncc"
+    if args.cross_check in ("none", ""):
+        return None
+    if args.cross_check == args.method:
+        raise ValueError(
+            f"--cross-check {args.cross_check}: the registration method itself (--method {args.method}); "
+            "a second run of it checks nothing: name another method, or none"
+        )
+    return args.cross_check
 
 
 #: names that say "a file": ``-o x.h5`` made a results folder called x.h5, which every other program
@@ -1446,7 +1462,6 @@ def _add_process_options(p):
     p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
     p.add_argument(
         "--cross-check",
-        default="ncc",
         help="register the main pair again with this method and flag a disagreement (default ncc; 'none' to skip)",
     )
     p.add_argument(
