@@ -273,7 +273,9 @@ def _panel_sigma(data) -> float:
     pooled temporal variance of a sample of rows, trimmed of the top 1 % of pixels (zingers, noisy
     pixels), floored at half a count. A MAD would quantise on integer counts and clip real noise."""
     pick = data[:, :: max(1, data.shape[1] // 64)].astype(np.float32)
-    var = pick.var(axis=0, ddof=1).ravel()
+    # in float64: float32 squares overflow past 1.8e19 counts (a float file scaled by a wrong
+    # factor), and an infinite window took no zinger for an outlier
+    var = pick.var(axis=0, ddof=1, dtype=np.float64).ravel()
     var = var[var <= np.quantile(var, 0.99)]
     return max(float(np.sqrt(var.mean())) if var.size else 0.0, 0.5)
 

@@ -850,14 +850,17 @@ def cmd_register(args) -> int:
     # the preset that made the field (auto's choice and why, what it started from), as
     # radiokit process records it: the file alone then says how to reproduce it
     quality = vars(q) | reg.run_record()
-    write_registration(
-        args.output,
-        RegistrationRecord(
-            reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
-        ),
-        overwrite=args.overwrite,
-        inputs=inputs,
+    record = RegistrationRecord(
+        reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
     )
+    with contextlib.ExitStack() as figure:
+        # the figure is drawn into its temporary before the field is renamed into place, and
+        # renamed itself just after: a Ctrl-C (or a refused figure) while matplotlib drew left
+        # the new field beside the previous run's figure, "no partial output was left" said
+        if args.png:
+            tmp = figure.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs))
+            _register_png(tmp, fixed, moving, registered, reg)
+        write_registration(args.output, record, overwrite=args.overwrite, inputs=inputs)
     print(
         f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
         f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
@@ -881,12 +884,29 @@ def cmd_register(args) -> int:
                 else "not run (already flagged)"
             )
         )
-    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}"))
+    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}"))
     if args.png:
-        with atomic_path(args.png, overwrite=args.overwrite, inputs=inputs) as tmp:
-            _register_png(tmp, fixed, moving, registered, reg)
         print(f"figure {args.png}")
     return 0 if q.ok else 1
+
+
+#: NCC before registering below which a flagged pair is taken for each other's negative
+_NEGATIVE_NCC = -0.5
+
+
+def _negative_hint(q) -> str:
+    """Why a flagged pair may be unregistrable as given: each other's negative (NCC well below 0
+    before registering), the mark of two pixel conventions (line integrals, brighter where more
+    attenuating, against counts or transmission, darker): no motion maps one onto the other, and
+    the flag alone said "did not find the motion". (Mutual information aligns such a pair, but
+    the checks, which compare intensities, flag it all the same.)"""
+    if not q.ncc_before < _NEGATIVE_NCC:
+        return ""
+    return (
+        f"; the images are each other's negative (NCC {q.ncc_before:.2f} before registering): one in line "
+        "integrals -ln(I/I0), the other in counts or transmission? register two of one convention "
+        "(radiokit correct --domain)"
+    )
 
 
 @contextlib.contextmanager
@@ -954,8 +974,24 @@ def _process_config(args, opts):
         regularisation_check=args.regularisation_check,
         view=args.view,
         control=str(args.control) if args.control else None,
-        cross_check=None if args.cross_check in ("none", "") else args.cross_check,
+        cross_check=_cross_check(args),
     )
+
+
+def _cross_check(args) -> str | None:
+    """``--cross-check`` as Config takes it: ncc when not given (skipped where ncc is the method
+    itself), None for none. The method itself, asked for, is refused: a second run of one method
+    checks nothing, and Config skipped it without a word (a user read the run as cross-checked)."""
+    if args.cross_check is None:
+        return "ncc"
+    if args.cross_check in ("none", ""):
+        return None
+    if args.cross_check == args.method:
+        raise ValueError(
+            f"--cross-check {args.cross_check}: the registration method itself (--method {args.method}); "
+            "a second run of it checks nothing: name another method, or none"
+        )
+    return args.cross_check
 
 
 #: names that say "a file": ``-o x.h5`` made a results folder called x.h5, which every other program
@@ -1440,7 +1476,6 @@ def _add_process_options(p):
     p.add_argument("--no-report", action="store_true", help="results.h5 and results.json only")
     p.add_argument(
         "--cross-check",
-        default="ncc",
         help="register the main pair again with this method and flag a disagreement (default ncc; 'none' to skip)",
     )
     p.add_argument(

@@ -681,6 +681,10 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
 STOP_WAIT_S = 10.0
 
 
+#: How often the background writer looks at its queue without being woken (see ``_run``).
+_WAKE_S = 0.1
+
+
 class _BackgroundWriter:
     """Write frames on a second thread while the next one is corrected; errors (a full disk)
     surface in the producer at the next ``put`` or at exit. Three rotating buffers: one being
@@ -698,7 +702,13 @@ class _BackgroundWriter:
 
     def _run(self):
         while True:
-            item = self._queue.get()
+            try:
+                # a bounded wait, then a look at the queue: a Ctrl-C inside the producer's put(),
+                # after the item was queued and before the wake-up, left this thread asleep beside
+                # it for good (the stop's sentinel then found the queue full: 10 s, "did not stop")
+                item = self._queue.get(timeout=_WAKE_S)
+            except queue.Empty:
+                continue
             if item is None:
                 return
             if self._error is None:

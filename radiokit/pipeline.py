@@ -424,7 +424,7 @@ def _load_steps(path, progress: bool) -> Steps:
         if len(numbers) < 2:
             raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
-        numbers = _compression_order(numbers, keys, steps, ratios_all, gaps)
+        numbers = _compression_order(numbers, keys, steps, ratios_all, gaps, path)
         images, ratios = [], []
         projections = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps >= 0))
         # one call for them all: its voltage warning counts every frame (per step, it said "1
@@ -534,7 +534,7 @@ def _check_below_the_flats(path, step, image) -> None:
         )
 
 
-def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
+def _compression_order(numbers, keys, steps, ratios, gaps, path=None) -> list[int]:
     """The step numbers least compressed first: by the recorded compression ratio when every
     step has one, else by the recorded plate gap (widest first) when every step has one, else
     by step number; ties keep the step numbers' order.
@@ -552,10 +552,28 @@ def _compression_order(numbers, keys, steps, ratios, gaps) -> list[int]:
             out.append(float(np.nanmean(v)) if np.isfinite(v).any() else float("nan"))
         return np.asarray(out)
 
-    for values, sign in ((per_step(ratios), 1.0), (per_step(gaps), -1.0)):
+    for values, name, sign in ((per_step(ratios), "compression ratio", 1.0), (per_step(gaps), "plate gap", -1.0)):
         if np.isfinite(values).all():
-            return [numbers[i] for i in np.argsort(sign * values, kind="stable")]
+            order = np.argsort(sign * values, kind="stable")
+            _warn_tied_reference(path, [numbers[i] for i in order[-2:]], values[order[-2:]], name)
+            return [numbers[i] for i in order]
     return list(numbers)
+
+
+def _warn_tied_reference(path, pair, values, name) -> None:
+    """Warn when the two most compressed steps record one ``name``: the reference was a tie the
+    step numbers broke without a word, and the main pair's compression-induced contrast is that
+    of no compression (a ratio typed twice, or a repeat at one compression)."""
+    if len(pair) == 2 and values[0] == values[1]:
+        import warnings
+
+        shown = f"{values[0]:g}" if name == "compression ratio" else f"{values[0] * 1e3:g} mm"  # gaps are in m
+        warnings.warn(
+            f"{path}: steps {pair[0]} and {pair[1]} record one {name}, {shown}: the main pair {pair[0]}->{pair[1]} "
+            f"compares two images of one compression (the reference taken by step number); check the recorded {name}s",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 def _step_image(cal, src, path, step, idx, factors, bar):

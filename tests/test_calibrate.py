@@ -49,6 +49,23 @@ def test_zinger_leaves_no_trace():
     np.testing.assert_allclose(avg[mask], clean[mask], rtol=1e-5)
 
 
+def test_a_zinger_is_dropped_from_frames_whose_squares_pass_float32s_range():
+    """Flats read as 3e29 (a float TIFF scaled by a wrong factor): the panel's noise, a float32
+    variance, overflowed to inf ("overflow encountered in square" and "invalid value" warnings
+    from `radiokit calibrate`), and with an infinite window no zinger was an outlier. The same
+    frames at any scale are averaged alike."""
+    rng = np.random.default_rng(0)
+    frames = rng.normal(1000, 10, (7, 32, 32))
+    frames[3, 5, 6] = 4095  # a zinger
+    scale = 1e26
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        big = robust_average((frames * scale).astype(np.float32))
+    small = robust_average(frames.astype(np.float32))
+    np.testing.assert_allclose(big / scale, small, rtol=1e-5)
+    assert abs(big[5, 6] / scale - np.delete(frames[:, 5, 6], 3).mean()) < 4 * 10 / np.sqrt(6)
+
+
 def test_zinger_with_two_frames_takes_the_smaller():
     rng = np.random.default_rng(5)
     frames = rng.normal(1000, 3, (2, 16, 16)).astype(np.float32)

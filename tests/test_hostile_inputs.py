@@ -699,6 +699,8 @@ def test_register_bad_arguments(args, words, tmp_path):
         (["--crop-mm", "nan"], "--crop-mm nan"),
         (["--method", "nosuch"], "--method 'nosuch'"),  # found only at the first registration
         (["--cross-check", "nosuch"], "--cross-check 'nosuch'"),  # only after the main registration
+        (["--cross-check", "rc"], "--cross-check rc"),  # the method itself: skipped without a word
+        (["--method", "ssd", "--cross-check", "ssd"], "--cross-check ssd"),
         (["--method", "tvl1", "--preset", "weak"], "--preset weak"),  # a traceback
         (["--workers", "0"], "--workers 0"),
         (["--scheduler-timeout", "0"], "--scheduler-timeout 0"),

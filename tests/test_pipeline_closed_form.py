@@ -119,6 +119,28 @@ def test_steps_are_ordered_by_ratio_else_gap_else_number(tmp_path, record, numbe
     assert means[1] < means[2] < means[3]
 
 
+@pytest.mark.parametrize(
+    "record, said", [("ratio", r"compression ratio, 0\.2\b"), ("gap", r"plate gap, \d+(\.\d+)? mm")]
+)
+def test_a_main_pair_recorded_at_one_compression_is_warned_of(record, said, tmp_path):
+    """Steps 2 and 3 both recorded at 20 % (a ratio typed twice, or a repeat): the reference,
+    "the most compressed", is a tie that the step numbers broke without a word, and the pair's
+    compression-induced contrast is that of no compression. Said, naming the steps and the ratio;
+    a series of three ratios says nothing."""
+    import warnings
+
+    from radiokit.pipeline import load_steps
+
+    _write(tmp_path / "tie.h5", order=(0, 1, 1), record=(record,))
+    with pytest.warns(UserWarning, match=r"tie\.h5: steps 2 and 3 record one " + said):
+        assert load_steps(tmp_path / "tie.h5").numbers == (1, 2, 3)
+    _write(tmp_path / "three.h5", order=(0, 1, 2), record=(record,))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_steps(tmp_path / "three.h5")
+    assert not [w for w in caught if "one compression" in str(w.message)]
+
+
 def test_a_steps_line_integral_is_the_log_of_its_frames_mean_transmission(tmp_path):
     """16 Poisson frames of 40 counts per pixel behind the object (noise-free flats): the step's
     line integral is ``-ln`` of the mean transmission, whose bias is ``1 / (2 N lambda)`` (the

@@ -3324,3 +3324,26 @@ def test_warp_refuses_a_masked_image():
     image = np.ma.masked_array(np.ones((20, 30), np.float32), mask=np.eye(20, 30, dtype=bool))
     with pytest.raises(ValueError, match=r"^image is a masked array, whose mask would be ignored"):
         warp(image, np.zeros((2, 20, 30), np.float32))
+
+
+def test_register_says_when_the_images_are_each_others_negative(tmp_path):
+    """`radiokit register corrected.h5 raw.tif`: line integrals (more attenuation brighter) onto
+    counts (darker). The pair is each other's negative (NCC -0.89 before), no smooth residual or
+    intensity-preserving motion maps one onto the other, and the command said only "did not find
+    the motion ... raise iterations". It now names the likely cause: two pixel conventions."""
+    from conftest import run_cli
+
+    from radiokit.io import write_tiff
+
+    rng = np.random.default_rng(0)
+    L = (1 + 3 * ndimage.gaussian_filter(rng.random((64, 64)), 3)).astype(np.float32)
+    write_tiff(tmp_path / "log.tif", L)
+    write_tiff(tmp_path / "counts.tif", (100 + 3000 * np.exp(-np.roll(L, 2, axis=1))).astype(np.float32))
+    res = run_cli("register", tmp_path / "log.tif", tmp_path / "counts.tif", "-o", tmp_path / "r.h5", "-q")
+    assert res.returncode == 1, res.stderr
+    warning = [line for line in res.stdout.splitlines() if line.startswith("WARNING")]
+    assert len(warning) == 1 and "negative" in warning[0] and "--domain" in warning[0], res.stdout
+    # a pair of one convention says nothing of it
+    write_tiff(tmp_path / "log2.tif", np.roll(L, 2, axis=1))
+    res = run_cli("register", tmp_path / "log.tif", tmp_path / "log2.tif", "-o", tmp_path / "r2.h5", "-q")
+    assert res.returncode == 0 and "negative" not in res.stdout, res.stdout
