@@ -1491,6 +1491,26 @@ def test_the_checks_leave_out_the_pixels_the_field_carries_out_of_the_frame():
         assert not q.ok and "out of the frame" in q.reason, q.reason
 
 
+def test_a_field_cannot_hide_a_wrong_band_by_carrying_it_out_of_the_frame():
+    """Review of session 47's checks: leaving out every pixel the field carries out of the frame
+    let a WRONG field hide its error there. The truth moves the body 6 px inward (nothing leaves
+    the frame); a field right elsewhere that shoves the frame's right 20 % outward past the edge
+    (a 12 px ramp, no fold) was flagged on main and trusted with the pixels left out (misaligned
+    share 0). The motion the field gives the rest of the object carries none of them out, so they
+    are judged; the true field of a body shifted across the edge is still trusted (the test above)."""
+    from radiokit.register import Quality, _assess
+
+    size = 96
+    fixed, moving, truth = _edge_body(size, (0.0, -6.0))
+    x = np.arange(size, dtype=np.float32)
+    x0, ramp = 0.8 * size, 12.0
+    dx = truth[1] + (size - x0 + 8) * np.clip((x - x0 + ramp) / ramp, 0, 1)
+    for right, d in ((True, truth), (False, np.stack([truth[0], np.broadcast_to(dx, truth[1].shape)]))):
+        reg = Registration(np.ascontiguousarray(d, np.float32), "planted", Quality())
+        _assess(reg, fixed, moving, None, {}, 0.0)
+        assert reg.quality.ok is right, (right, reg.quality.reason)
+
+
 def test_silent_preset_registers_a_compressed_textureless_slab():
     """The side view's failure in small: a textureless slab compressed by 8 % along the rows and
     widened by 4 % (about 8 px at its ends), a 10 % gain across it. ``default`` cannot tell where

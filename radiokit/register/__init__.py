@@ -972,9 +972,53 @@ def _judged(p, w, d):
     spread into the windows around them), and they are left out of the observed part they judge
     (:func:`_left_in_frame`: too little left is no verdict of ok)."""
     out = _carried_out(d)
+    if out is not None:
+        out = _explained(p, d, out)
     if out is None:
         return w, None
     return np.where(out, p.f, w).astype(w.dtype, copy=False), out
+
+
+#: How near the frame's edge (full-resolution px) the motion of the rest of the object must carry
+#: a pixel for the checks to leave it out where the field carries it out (:func:`_explained`).
+_CARRIED_OUT_PX = 2.0
+
+
+def _explained(p, d, out):
+    """Of the pixels ``out`` that the field ``d`` (the checks' grid) carries out of the frame, those
+    that the motion it gives the rest of the observed object also carries out, to within
+    ``_CARRIED_OUT_PX`` of the edge: the least-squares affine fit of ``d`` over the observed pixels
+    it keeps in the frame, extrapolated (None: none left). Why: a pixel left out is not judged, so
+    a field wrong only where it carries pixels out would pass; a field that shoved the frame's
+    right 20 % outward where the truth moves the body 6 px inward was trusted (review, session 47;
+    tests/test_register.py). A shift, a scaling or a rotation across the edge, the fields that
+    rightly carry a strip out, are affine: their strip stays left out."""
+    from scipy import ndimage
+
+    from radiokit.register._bspline import _OUTSIDE_MARGIN
+
+    keep = p.obs & ~out
+    # not the window next to the pixels carried out: a field wrong there ramps up to them (fitted
+    # with them, a 12 px ramp carried its own band out)
+    far = keep & (ndimage.distance_transform_edt(~out) > _WINDOW)
+    ky, kx = np.nonzero(far if far.sum() >= 0.25 * keep.sum() else keep)
+    if ky.size < 3:  # nothing to fit on: _left_in_frame's reason judges the field
+        return out
+    step = max(1, ky.size // 20000)  # a subsample: an affine fit needs few points
+    ky, kx = ky[::step], kx[::step]
+    a = np.column_stack([np.ones(ky.size), ky, kx])
+    coef = np.linalg.lstsq(a, np.stack([d[0][ky, kx], d[1][ky, kx]], axis=1), rcond=None)[0]
+    oy, ox = np.nonzero(out)
+    b = np.column_stack([np.ones(oy.size), oy, ox]) @ coef
+    y, x = oy + b[:, 0], ox + b[:, 1]
+    rows, cols = d.shape[1:]
+    m = _OUTSIDE_MARGIN - _CARRIED_OUT_PX / p.k
+    beyond = (y < -m) | (y > rows - 1 + m) | (x < -m) | (x > cols - 1 + m)
+    if not beyond.any():
+        return None
+    kept = np.zeros_like(out)
+    kept[oy[beyond], ox[beyond]] = True
+    return kept
 
 
 def _residual_step(p, w, obs) -> float:
