@@ -723,7 +723,8 @@ def _reader_advice(exc) -> dict:
         if e is None or id(e) in seen:
             continue
         seen.add(id(e))
-        found.update(getattr(e, "advice", {}))
+        for option, said in getattr(e, "advice", {}).items():  # the outermost error's words: those shown
+            found.setdefault(option, said)
         stack += [*getattr(e, "errors", ()), e.__cause__, e.__context__]
     return found
 
