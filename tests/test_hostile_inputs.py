@@ -2717,3 +2717,18 @@ def test_process_in_python_names_no_reader_option_it_does_not_take(outside, tmp_
             cli._batch_error(_error_result(str(path), info.value)),
         ):
             assert "process()" not in words and "radiokit process reads" in words, words
+
+
+def test_several_inputs_errors_keep_their_words_and_advice_when_pickled(tmp_path):
+    """s47 review: InputErrors was rebuilt from its message (Exception's pickling): its one text
+    was taken for the list of errors, and the copy's words came out one character a line."""
+    import pickle
+
+    from radiokit import cli
+    from radiokit.errors import InputErrors
+
+    said = "(words that advise --dataset)"
+    errors = InputErrors([FormatError(tmp_path / "a.h5", f"x {said}", advice={"dataset": said}), ValueError("b: y")])
+    copy = pickle.loads(pickle.dumps(errors))
+    assert str(copy) == str(errors) and [str(e) for e in copy.errors] == [str(e) for e in errors.errors]
+    assert cli._reader_advice(copy) == {"dataset": said}
