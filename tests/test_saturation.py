@@ -236,6 +236,8 @@ def _negatively_scaled_calibration(rng):
     with pytest.warns(CalibrationWarning, match="saturation not checked"):
         cal = Calibration.from_frames(darks, flats, scaling=scaling)
     assert cal.thresholds.saturation is None
+    # its flats' saturated pixels were not counted either: none said, not 0 (s47 review)
+    assert cal.provenance["n_flat_saturated"] is None and "saturation_not_checked" in cal.provenance
     return cal
 
 
