@@ -804,6 +804,7 @@ class Calibration:
         provenance["saturated_lines"] = {"rows": sat_rows.tolist(), "columns": sat_cols.tolist()}
         if scaled and th.saturation is None:  # (from_frames warned) kept, so that correct says "not checked"
             provenance["saturation_not_checked"] = f"values scaled ({scaled['text']})"
+            provenance["n_flat_saturated"] = None  # not counted: no 0 beside it
         return cls(
             dark,
             flat,

@@ -622,6 +622,8 @@ def cmd_correct(args) -> int:
     saturated = f"{summary['saturated']} saturated"
     if summary["saturated"] == "unknown":  # as info says it: never "0 saturated" of frames not checked
         saturated = f"saturation {summary['saturation_from']}"
+    elif "saturation_from" in summary:  # some frames not checked: the count is of the others
+        saturated += f" (saturation {summary['saturation_from']})"
     print(
         f"  flagged: {summary['defects_filled_per_frame']} defect pixels filled per frame; "
         # the count holds NaN and inf raw pixels too (PixelFlag.NONPOSITIVE): "non-positive" alone
@@ -721,7 +723,8 @@ def _reader_advice(exc) -> dict:
         if e is None or id(e) in seen:
             continue
         seen.add(id(e))
-        found.update(getattr(e, "advice", {}))
+        for option, said in getattr(e, "advice", {}).items():  # the outermost error's words: those shown
+            found.setdefault(option, said)
         stack += [*getattr(e, "errors", ()), e.__cause__, e.__context__]
     return found
 

@@ -52,8 +52,10 @@ class CorrectionReport:
     Attributes
     ----------
     saturated, nonpositive : ndarray (n,) int
-        Pixels at the ADC's top; pixels with ``raw - dark <= 0`` or a non-finite raw value
-        (clamped and filled).
+        Pixels at the ADC's top, or :data:`NOT_CHECKED` (-1) for a frame with no level to count
+        against (:func:`radiokit.calibrate.frame_saturation` None: a negatively scaled panel's
+        calibration, values above 65535); pixels with ``raw - dark <= 0`` or a non-finite raw
+        value (clamped and filled).
     defects_filled : int
         Pixels of the calibration's defect map filled in every frame.
     flags : ndarray uint32, (rows, cols) or (n, rows, cols)
@@ -66,10 +68,21 @@ class CorrectionReport:
     flags: np.ndarray | None = None
 
     def summary(self) -> str:
+        unchecked = int(np.count_nonzero(self.saturated == NOT_CHECKED))
+        n = len(self.saturated)
+        saturated = f"{int(self.saturated[self.saturated != NOT_CHECKED].sum())} saturated" if unchecked < n else ""
+        if unchecked:  # never "0 saturated" of frames not checked
+            saturated += f"{' (' if saturated else ''}saturation not checked in {unchecked} of {n} frame(s)"
+            saturated += ")" if unchecked < n else ""
         return (
-            f"{len(self.saturated)} frame(s): {self.defects_filled} defect pixels filled per frame, "
-            f"{int(self.saturated.sum())} saturated, {int(self.nonpositive.sum())} non-positive or non-finite (filled)"
+            f"{n} frame(s): {self.defects_filled} defect pixels filled per frame, "
+            f"{saturated}, {int(self.nonpositive.sum())} non-positive or non-finite (filled)"
         )
+
+
+#: the saturated count of a frame that had no saturation level to be counted against (the
+#: HDF5 output's ``saturated`` column, its ``missing_value``; :class:`CorrectionReport`)
+NOT_CHECKED = -1
 
 
 # -- fill plans --------------------------------------------------------------------------------
@@ -429,7 +442,8 @@ def warn_above_top(cal: Calibration, n_pixels: int, n_frames: int, stacklevel=3)
 
 def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=True):
     """Correct one frame; the non-positive pixels met and, if ``count_saturated``, the saturated
-    ones (only reported, never repaired: a caller that reports nothing does not pay for them)."""
+    ones (only reported, never repaired: a caller that reports nothing does not pay for them), or
+    None where the frame has no level to count them against: not checked, which is no "0"."""
     k = CorrectionKernel.of(cal)
     scale = cal.c if domain == "counts" else 1.0
     saturation = None
@@ -443,7 +457,8 @@ def _correct_checked(cal: Calibration, raw2d, out2d, domain, count_saturated=Tru
             f"a raw frame holds values up to {top:.3g}, beyond float32's range ({FLOAT32_MAX:.2g}) the "
             "correction computes in: no detector's counts; rescale them"
         )
-    return _correct_one(raw2d, k, out2d, domain, scale, saturation)
+    nonpos, sat = _correct_one(raw2d, k, out2d, domain, scale, saturation)
+    return nonpos, (None if count_saturated and saturation is None else sat)
 
 
 #: A frame whose brightest tenth (its 90th percentile above the dark) stands no higher than this
@@ -661,11 +676,12 @@ def correct_frames(cal: Calibration, raw, *, domain="log", out=None, return_repo
         except ValueError as exc:  # one line naming the frame, and, for a check, the way past it
             how = "; correct_frames(..., check=False) corrects it regardless" if checking else ""
             raise ValueError(f"{where}{exc}{how}") from None
-        np_counts[i], sat_counts[i] = nonpos.size, sat.size
+        np_counts[i], sat_counts[i] = nonpos.size, NOT_CHECKED if sat is None else sat.size
         n_over += above_top(cal, stack[i], top)
         if return_report:
             flags[i].ravel()[nonpos] |= np.uint32(PixelFlag.NONPOSITIVE)
-            flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
+            if sat is not None:
+                flags[i].ravel()[sat] |= np.uint32(PixelFlag.SATURATED)
     warn_above_top(cal, n_over, n)
     if not return_report:
         return out
@@ -950,7 +966,7 @@ def correct_files(
     From experiment files only frames whose ``image_key`` is in ``image_keys`` (projections by
     default) are corrected; other formats have no keys and every frame is. The HDF5 output
     records, per frame, the source file and frame index, the compression step where known, and
-    the saturated and non-positive counts, and the calibration's defect map (the pixels filled in
+    the saturated (:data:`NOT_CHECKED`, -1, where not checked) and non-positive counts, and the calibration's defect map (the pixels filled in
     every frame) as ``/entry/instrument/detector/pixel_mask``. Returns a summary dict.
 
     ``output`` is written atomically (a temporary file renamed into place when complete); an
@@ -971,7 +987,7 @@ def correct_files(
     try:
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
         t0 = time.perf_counter()
-        sat_total = np_total = over_total = 0
+        sat_total = np_total = over_total = unchecked = 0
         with (
             StackWriter(
                 output,
@@ -983,6 +999,7 @@ def correct_files(
                 inputs=inputs,
                 pixel_mask=cal.mask,  # which pixels every frame had filled: the counts did not say where
                 pixel_mask_attrs=_mask_attrs(cal),
+                series_attrs={"saturated": _SATURATED_ATTRS},
             ) as writer,
             tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,
@@ -991,14 +1008,15 @@ def correct_files(
                 frame = bg.buffer()
                 nonpos, sat, over = _correct_planned(cal, sources[si], fi, frame, domain, factor)
                 over_total += over
-                sat_total += sat.size
+                unchecked += sat is None
+                sat_total += 0 if sat is None else sat.size
                 np_total += nonpos.size
                 bg.put(
                     frame,
                     source_index=np.int32(si),
                     frame_index=np.int32(fi),
                     step=np.int16(step),
-                    saturated=np.int64(sat.size),
+                    saturated=np.int64(NOT_CHECKED if sat is None else sat.size),
                     nonpositive=np.int64(nonpos.size),
                 )
                 bar.update(1)
@@ -1012,17 +1030,35 @@ def correct_files(
         "domain": domain,
         "seconds": elapsed,
         "frames_per_second": n_plan / elapsed if elapsed else float("inf"),
-        **_saturation_summary(cal, sat_total),
+        **_saturation_summary(cal, sat_total, unchecked, n_plan),
         "nonpositive": np_total,
         "defects_filled_per_frame": CorrectionKernel.of(cal).n_defects,
     }
 
 
-def _saturation_summary(cal: Calibration, counted: int) -> dict:
+def _saturation_summary(cal: Calibration, counted: int, unchecked: int, frames: int) -> dict:
     """``saturated``, the pixels counted at or above the calibration's level, or "unknown" with
     ``saturation_from`` saying why where it has none (a negatively scaled panel's): "0 saturated"
-    was said of frames never checked, as ``info`` says "unknown" of them."""
-    if cal.thresholds.saturation is not None:
-        return {"saturated": counted}
-    why = cal.provenance.get("saturation_not_checked") or "the calibration holds no saturation level"
-    return {"saturated": "unknown", "saturation_from": f"not checked: {why}"}
+    was said of frames never checked, as ``info`` says "unknown" of them. Frames of values above
+    every ADC's top (``unchecked`` of ``frames``) are not checked either: the count is of the others."""
+    if cal.thresholds.saturation is None:
+        why = cal.provenance.get("saturation_not_checked") or "the calibration holds no saturation level"
+        return {"saturated": "unknown", "saturation_from": f"not checked: {why}"}
+    if unchecked == frames:
+        return {"saturated": "unknown", "saturation_from": "not checked: values above 65535, no ADC's top"}
+    if unchecked:
+        return {
+            "saturated": counted,
+            "saturation_from": f"not checked in {unchecked} of {frames} frame(s): values above 65535",
+        }
+    return {"saturated": counted}
+
+
+#: the HDF5 output's ``saturated`` column says which frames were not checked, as a reader of
+#: that file expects to be told: CF's ``missing_value`` (xarray and netCDF readers mask it)
+_SATURATED_ATTRS = {
+    "description": "pixels at or above the frame's saturation level (the calibration's defects aside); "
+    f"{NOT_CHECKED}: not checked, no level for that frame (a negatively scaled panel's calibration; "
+    "values above 65535, no ADC's top)",
+    "missing_value": np.int64(NOT_CHECKED),
+}

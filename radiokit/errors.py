@@ -41,3 +41,7 @@ class InputErrors(RadiokitError, ValueError):
     def __init__(self, errors):
         self.errors = list(errors)
         super().__init__("\n".join(str(e) for e in self.errors))
+
+    def __reduce__(self):
+        # rebuilt from its args, the message, that text was taken for the errors: one character a line
+        return type(self), (self.errors,)

@@ -1127,13 +1127,37 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
         raise FileNotFoundError(f"{path}: no such experiment file") from None
     except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
-    _check_inputs(path, cfg.control)  # before any work
     out_dir = Path(out_dir) if out_dir is not None else path.parent / _folder_name(path)
     inputs = [path] + ([Path(cfg.control)] if cfg.control else [])
-    with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
-        res = _process(path, cfg, stage)
+    try:
+        _check_inputs(path, cfg.control)  # before any work
+        with atomic_dir(out_dir, overwrite=overwrite, inputs=inputs) as stage:
+            res = _process(path, cfg, stage)
+    except FormatError as exc:
+        if not exc.advice:
+            raise
+        raise _in_process_words(exc) from exc
     res.files = {k: str(out_dir / Path(v).relative_to(stage)) for k, v in res.files.items()}
     return res
+
+
+#: what process() says in place of a reader's advice (FormatError.advice) of an option it does not
+#: take: it reads experiment files only, and no data outside them
+_PROCESS_ADVICE = {
+    "allow_external": "(process() reads no data outside the experiment file: copy the linked data into it first)",
+    "dataset": "process() reads experiment files only (radiokit.io.read(path, dataset=...) reads one's frames; "
+    "radiokit.io.ExperimentWriter writes them into an experiment file)",
+}
+
+
+def _in_process_words(exc: FormatError) -> FormatError:
+    """``exc`` with its advice of reader options process() does not take in its own words, and
+    those words as its advice (radiokit process says its own in their place)."""
+    problem, advice = exc.problem, {}
+    for option, said in exc.advice.items():
+        advice[option] = _PROCESS_ADVICE.get(option, said)
+        problem = problem.replace(said, advice[option])
+    return type(exc)(exc.path, problem, advice=advice)
 
 
 def _output_kind(dataset, kind) -> str:

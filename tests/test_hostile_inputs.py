@@ -2694,3 +2694,43 @@ def test_write_results_refuses_an_existing_file_unless_overwrite(tmp_path):
     with pytest.raises(FileExistsError, match="results.h5: exists; pass --overwrite"):
         _results_file(path)
     assert path.read_bytes() == before
+
+
+def test_process_in_python_names_no_reader_option_it_does_not_take(outside, tmp_path):
+    """s47 review: pipeline.process() refused a linked experiment with the reader's advice
+    "(allow_external=True; --allow-external)", and another layout with "pass --dataset PATH
+    (dataset= in Python)": process() takes neither. Its own remedy, and still the command
+    line's in radiokit process (through the error's advice, outermost first)."""
+    from radiokit import cli
+    from radiokit.pipeline import _error_result, process
+
+    files, _ = outside
+    scan = tmp_path / "scan.h5"
+    with h5py.File(scan, "w") as h5:
+        h5["data"] = np.zeros((3, 16, 20), np.uint16)
+    for path, said in ((files["linked experiment"], "copy the linked data into it first"), (scan, "ExperimentWriter")):
+        with pytest.raises(FormatError, match=rf"{path.name}: .*process\(\).*{said}") as info:
+            process(path, out_dir=tmp_path / "out")
+        text = str(info.value)
+        assert "allow_external=True" not in text and "--allow-external" not in text and "--dataset" not in text, text
+        assert "unless asked for" not in text, text  # nothing process() can ask with
+        for words in (
+            cli._process_error(text, None, cli._reader_advice(info.value)),
+            cli._batch_error(_error_result(str(path), info.value)),
+        ):
+            assert "process()" not in words and "radiokit process reads" in words, words
+
+
+def test_several_inputs_errors_keep_their_words_and_advice_when_pickled(tmp_path):
+    """s47 review: InputErrors was rebuilt from its message (Exception's pickling): its one text
+    was taken for the list of errors, and the copy's words came out one character a line."""
+    import pickle
+
+    from radiokit import cli
+    from radiokit.errors import InputErrors
+
+    said = "(words that advise --dataset)"
+    errors = InputErrors([FormatError(tmp_path / "a.h5", f"x {said}", advice={"dataset": said}), ValueError("b: y")])
+    copy = pickle.loads(pickle.dumps(errors))
+    assert str(copy) == str(errors) and [str(e) for e in copy.errors] == [str(e) for e in errors.errors]
+    assert cli._reader_advice(copy) == {"dataset": said}

@@ -1432,6 +1432,19 @@ def test_a_stack_of_one_column_frames_with_its_axes_given_reads_without_a_warnin
     assert not [str(w.message) for w in caught]
 
 
+def test_axes_of_another_shape_than_the_pages_read_still_leave_the_dstack_warning(tmp_path):
+    """s47 review: the axes a description gives spared the dstack warning whatever shape it gave
+    with them: pages of 80 x 4 under {"shape": [4, 80, 80], "axes": "ZYX"} (an edited description,
+    which does not say how the pages read) read as 80 frames of 80 x 4 without a word."""
+    data = _frames(80, 80, 4)
+    path = tmp_path / "edited.tif"
+    desc = '{"shape": [4, 80, 80], "axes": "ZYX"}'
+    tifffile.imwrite(path, data, photometric="minisblack", description=desc, metadata=None)
+    with pytest.warns(UserWarning, match=r"edited\.tif: reads as 80 frames of 80x4; .*dstack"):
+        got = read(path)
+    np.testing.assert_array_equal(got.data, data)
+
+
 @needs_itex
 @pytest.mark.parametrize("name", ["frame.tif", "frame.h5"])
 def test_an_itex_file_under_another_extension_is_named_as_itex(tmp_path, name):

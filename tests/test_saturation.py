@@ -225,3 +225,68 @@ def test_msb_aligned_flats_clipped_nearly_everywhere_are_refused(bits):
     assert adc_top(darks << shift, flats << shift) == top << shift
     with pytest.raises(ValueError, match=rf"saturated \(>= {top << shift}\)"):
         Calibration.from_frames(darks << shift, flats << shift)
+
+
+def _negatively_scaled_calibration(rng):
+    """A calibration of a negatively scaled panel's values (value = 50 - stored / 100): its
+    saturation level is not known (``Calibration.from_frames`` warns, s47)."""
+    scaling = {"scale": -0.01, "offset": 50.0, "stored": np.dtype(np.uint16), "text": "stored * -0.01 + 50"}
+    darks = (50 - rng.normal(4000, 3, (4, *SHAPE)).astype(np.uint16) / 100).astype(np.float32)
+    flats = (50 - rng.normal(1000, 30, (4, *SHAPE)).astype(np.uint16) / 100).astype(np.float32)
+    with pytest.warns(CalibrationWarning, match="saturation not checked"):
+        cal = Calibration.from_frames(darks, flats, scaling=scaling)
+    assert cal.thresholds.saturation is None
+    # its flats' saturated pixels were not counted either: none said, not 0 (s47 review)
+    assert cal.provenance["n_flat_saturated"] is None and "saturation_not_checked" in cal.provenance
+    return cal
+
+
+def test_frames_whose_saturation_was_not_checked_are_said_so_per_frame_not_counted_zero(tmp_path):
+    """s47 review: the calibration of a negatively scaled panel holds no saturation level, so no
+    frame is checked; correct's HDF5 output still wrote saturated = 0 for every frame, as for a
+    frame checked and found clean. Now -1 there, the column's ``missing_value`` (as CF readers,
+    xarray, mask it), with a description; the report of correct_frames says so too."""
+    from radiokit.correct import correct_files
+    from radiokit.io import read_stack
+
+    rng = np.random.default_rng(8)
+    cal = _negatively_scaled_calibration(rng)
+    raw = np.full((2, *SHAPE), 30.0, np.float32)
+    _, report = correct_frames(cal, raw, domain="linear", return_report=True, check=False)
+    assert report.saturated.tolist() == [-1, -1]
+    assert "saturation not checked in 2 of 2 frame(s)" in report.summary() and "saturated" not in report.summary()
+    source = tmp_path / "p.tif"
+    tifffile.imwrite(source, raw, photometric="minisblack")
+    out = tmp_path / "out.h5"
+    summary = correct_files([source], cal, out, domain="linear", progress=False)
+    assert summary["saturated"] == "unknown", summary
+    stack = read_stack(out)
+    assert stack.series["saturated"].tolist() == [-1, -1]
+    import h5py
+
+    with h5py.File(out) as h5:
+        attrs = dict(h5["entry/data/saturated"].attrs)
+    assert attrs["missing_value"] == -1 and "not checked" in attrs["description"], attrs
+
+
+def test_a_frame_above_every_adcs_top_is_not_checked_the_others_are_counted(tmp_path):
+    """A 32-bit frame holding values above 65535 has no ADC top to count against
+    (frame_saturation gives None): that frame is said unchecked (-1), not "0 saturated", while a
+    frame of the same run within the calibration's 4095 is counted."""
+    rng = np.random.default_rng(9)
+    darks, flats = _darks(rng, dtype=np.uint32), _flats(rng, 2000.0, 4095, spread=0.05, dtype=np.uint32)
+    cal = Calibration.from_frames(darks, flats)
+    assert cal.thresholds.saturation == 4095
+    frames = np.full((2, *SHAPE), 1500, np.uint32)
+    frames[0, :3, :3] = 4095  # 9 px at the 12-bit top
+    frames[1, :2, :2] = 70000  # no 12- or 16-bit ADC gives this
+    _, report = correct_frames(cal, frames, domain="linear", return_report=True, check=False)
+    assert report.saturated.tolist() == [9, -1]
+    assert "9 saturated" in report.summary() and "not checked in 1 of 2" in report.summary()
+    from radiokit.correct import correct_files
+    from radiokit.io import read_stack
+
+    tifffile.imwrite(tmp_path / "p.tif", frames, photometric="minisblack")
+    summary = correct_files([tmp_path / "p.tif"], cal, tmp_path / "out.h5", domain="linear", progress=False)
+    assert summary["saturated"] == 9 and "not checked in 1 of 2" in summary["saturation_from"], summary
+    assert read_stack(tmp_path / "out.h5").series["saturated"].tolist() == [9, -1]

@@ -990,15 +990,16 @@ def _unclosed(
 
 
 #: the words of a reader's refusal that advise its options (FormatError.advice): a command without
-#: the option (radiokit process) says its own remedy in their place
-EXTERNAL_ADVICE = "(allow_external=True; --allow-external)"
+#: the option (radiokit process) says its own remedy in their place ("unless asked for" too:
+#: nothing it can ask with)
+EXTERNAL_ADVICE = "unless asked for (allow_external=True; --allow-external)"
 DATASET_ADVICE = "pass --dataset PATH (dataset= in Python) to read one"
 
 
 def _refuse_external(path, what):
     raise FormatError(
         path,
-        f"{what}: data outside this file is not read unless asked for {EXTERNAL_ADVICE}",
+        f"{what}: data outside this file is not read {EXTERNAL_ADVICE}",
         advice={"allow_external": EXTERNAL_ADVICE},
     )
 
@@ -1387,7 +1388,7 @@ def check_local(path, h5, ds, allow_external=False) -> None:
             raise FormatError(
                 path,
                 f"{ds.name} is a virtual dataset mapping {shown} of this file: virtual datasets are not read "
-                f"unless asked for {EXTERNAL_ADVICE}, or read the source dataset itself",
+                f"{EXTERNAL_ADVICE}, or read the source dataset itself",
                 advice={"allow_external": EXTERNAL_ADVICE},
             )
         _refuse_external(path, f"{ds.name} is a virtual dataset (its data are in other files)")
@@ -2127,7 +2128,7 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
         more = f" and {'more' if len(found) <= shown else f'at least {len(found) - shown} more'}"
     else:
         more = f" and {len(found) - shown} more" if len(found) > shown else ""
-    outside = f"; a link into another file is not read unless asked for {EXTERNAL_ADVICE}" if linked else ""
+    outside = f"; a link into another file is not read {EXTERNAL_ADVICE}" if linked else ""
     return ", ".join(text for _, text in found[:shown]) + more + outside
 
 

@@ -1016,8 +1016,9 @@ class FrameSource:
         return FormatError(self.path, said, advice=linked_advice(listed))
 
     def _axes_given(self) -> bool:
-        """A TIFF whose tifffile description gives the axes of a stack ("ZYX", "TZYX"): its writer
-        said which are frames, rows and columns, so there is nothing for a warning to guess."""
+        """A TIFF whose tifffile description gives the axes of a stack ("ZYX", "TZYX") of the
+        frames read: its writer said which are frames, rows and columns, so there is nothing for a
+        warning to guess (axes of another shape, an edited description, say nothing of them)."""
         if self.format != "tiff" or not self._tif.is_shaped or not self._pages:
             return False
         try:
@@ -1025,7 +1026,14 @@ class FrameSource:
             shape, axes = meta["shape"], meta.get("axes")
         except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
             return False
-        return isinstance(axes, str) and isinstance(shape, list) and len(axes) == len(shape) > 2 and axes[-2:] == "YX"
+        if not (
+            isinstance(axes, str) and isinstance(shape, list) and len(axes) == len(shape) > 2 and axes[-2:] == "YX"
+        ):
+            return False
+        return all(isinstance(v, int) for v in shape) and (math.prod(shape[:-2]), *shape[-2:]) == (
+            self.n,
+            *self.frame_shape,
+        )
 
     def _trimmed_stack(self, first, pages) -> dict | None:
         """The geometry of frames of one column (or one pixel) tifffile stored as fewer, larger

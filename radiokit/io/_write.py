@@ -60,6 +60,8 @@ class StackWriter:
     attributes of ``/entry/data`` (nested dicts as JSON). Each frame is flushed as written.
     ``pixel_mask`` (HDF5 only; a TIFF stack has no place for it) is written once as
     ``/entry/instrument/detector/pixel_mask``, with ``pixel_mask_attrs`` as its attributes.
+    ``series_attrs`` (HDF5 only) maps a per-frame series' name to its dataset's attributes (what
+    a sentinel value in it means).
 
     JSON is strict (:mod:`radiokit._json`): a non-finite number is null, and a dict names it in its
     ``"not_finite"`` and reads back as the number; a list attribute cannot carry that map, so a
@@ -88,8 +90,10 @@ class StackWriter:
         inputs=(),
         pixel_mask=None,
         pixel_mask_attrs=None,
+        series_attrs=None,
     ):
         self.path = Path(path)
+        self._series_attrs = {name: dict(attrs) for name, attrs in (series_attrs or {}).items()}
         self._pixel_mask = (pixel_mask, dict(pixel_mask_attrs or {}))
         self.frame_shape = tuple(int(s) for s in frame_shape)
         self.dtype = np.dtype(dtype)
@@ -197,6 +201,8 @@ class StackWriter:
                         dtype=np.asarray(value).dtype,
                         chunks=(256,),
                     )
+                    for key, attr in self._series_attrs.get(name, {}).items():
+                        ds.attrs[key] = attr
                     self._series[name] = ds
                 if i >= ds.shape[0]:
                     ds.resize(i + 1, axis=0)
