@@ -1058,8 +1058,8 @@ def _cli_terms(text: str, port: str | None = None) -> str:
 def _hold_beam(src, args, reading) -> None:
     """``on``'s beam held for ``--for`` s, polled as a series' beam monitor polls an exposure
     (:meth:`~acquisition.l8121.L8121.check` every ``[source] poll_s``, which also keeps the
-    guardian's watchdog fed): an open interlock, an overload or a dropped beam switches off and
-    raises. One line says when it ends; a bar counts down on a terminal only (as ``warm-up``)."""
+    guardian's watchdog fed): an open interlock, an overload, a dropped beam or a controller
+    error code (``SER``, read at most once a second) switches off and raises. One line says when it ends; a bar counts down on a terminal only (as ``warm-up``)."""
     import time
 
     from acquisition.protocols.compression_series import SourceSettings

@@ -23,7 +23,8 @@ each keeping the safety rules of the hardware notes:
   ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them back (A: ``SVI``; B:
   ``SPV``/``SPC``), switches on and waits for a stable beam;
 - :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
-  ``SCU``, ``SIN``) and, on overload, an open interlock or a dropped beam, switches off and raises
+  ``SCU``, ``SIN``; ``SER`` at most every :data:`ERROR_POLL_S`) and, on overload, an open
+  interlock, a dropped beam or a controller error code, switches off and raises
   :class:`~acquisition.errors.SourceFault`;
 - :meth:`L8121.off` switches off and confirms it with ``STS``; :meth:`L8121.close` and the context
   manager switch off on every exit path (exception, Ctrl-C), and so does any reply that cannot be
@@ -124,6 +125,15 @@ logger = logging.getLogger(__name__)
 #: that ends by saying that failure itself, right above the X-RAYS warning, keeps these records off
 #: the terminal (each layer that tried logged its own copy, and the operator read it three times).
 OFF_FAILURE = "tube_off_failure"
+
+#: With the beam on (check(), on()'s ramp, the warm-up's wait) ``SER`` is read at most this often,
+#: after the poll's beam checks. Not every poll: each query costs the link's spacing (A 50 ms,
+#: B 60 ms) and the beam checks (A ``SAR SIN``, B ``STS SHV SCU SIN``) keep their period. B's
+#: public driver cycles SER in its poll, 20 ms apart; at radiokit's 60 ms a fifth query every
+#: poll would stretch B's cycle by a quarter. Once a second bounds the time a relay or internal
+#: fault goes unnoticed (L8121.md: a reason to stop) to about a second, for about one
+#: exchange a second of link time.
+ERROR_POLL_S = 1.0
 
 
 class SettingRefused(ValueError):
@@ -1518,6 +1528,11 @@ class L8121:
         self.port_opened = False
         self._last_state: SourceState | None = None
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
+        # when SER was last read (time.monotonic()), for ERROR_POLL_S's bound with the beam on
+        self._error_read_at: float | None = None
+        # time.time() just before the last SER read that found no fault: a beam's frames after it
+        # are not vouched for once a later SER reads one (the code may have stood since)
+        self._error_good_at: float | None = None
         # One switch-off at a time, and it goes first: the thread that owns it (_off_thread) sends
         # its XOF/STS before any other thread's queued exchange, and a second caller of off()
         # waits for its outcome instead of repeating it (a silent controller would cost each
@@ -2444,6 +2459,7 @@ class L8121:
         ``error_query = false`` (a unit without ``SER``) asks nothing."""
         if not self.config.error_query:
             return
+        asked = time.time()
         try:
             code = self.error_code()
         except DeviceError as exc:
@@ -2453,22 +2469,54 @@ class L8121:
                     "set error_query = false in its [source] configuration"
                 ) from exc
             raise
+        finally:
+            self._error_read_at = time.monotonic()  # the beam's SER interval starts here (XON follows)
         if code == 0 or code in self.config.allowed_error_codes:
+            self._error_good_at = asked
             return
-        if self.dialect is DIALECT_B:
-            meaning = (
-                "a relay or internal fault of the control board, by L8121.md's dialect B notes"
-                if 1 <= code <= 4
-                else "not among L8121.md's dialect B codes (0 none, 1-4 relay or internal faults)"
-            )
-        else:
-            meaning = "L8121.md gives dialect A's error codes no meaning beyond 0, none"
         raise SourceFault(
-            f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {meaning}); "
+            f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {self._error_meaning(code)}); "
             f"no X-ray command was sent and nothing was reset. L8121.md does not say how the code clears: "
             f"see to the unit, then try again (a code the unit's manual calls harmless: allowed_error_codes "
             f"in its [source] configuration)"
         )
+
+    def _error_meaning(self, code: int) -> str:
+        """What L8121.md says of the non-zero error ``code`` in this dialect."""
+        if self.dialect is DIALECT_B:
+            return (
+                "a relay or internal fault of the control board, by L8121.md's dialect B notes"
+                if 1 <= code <= 4
+                else "not among L8121.md's dialect B codes (0 none, 1-4 relay or internal faults)"
+            )
+        return "L8121.md gives dialect A's error codes no meaning beyond 0, none"
+
+    def _watch_error_code(self, when: str) -> None:
+        """With the beam on: read ``SER`` when :data:`ERROR_POLL_S` has passed since it was last
+        read, and switch off (:meth:`_trip`, ``XOF`` confirmed by ``STS``) on a code the
+        configuration does not allow, naming it and ``when`` ("with the beam on"). L8121.md: B's
+        1-4 are relay or internal faults, a reason to stop high voltage; before s47ser a code that
+        came up mid-exposure went unnoticed until the next on() refused. A garbled or refused
+        reply is the fail-safe's, as any poll's (:meth:`_read`). ``error_query = false``: nothing.
+
+        The :class:`SourceFault` carries ``vouched_until``, the ``time.time()`` of the last ``SER``
+        that read no fault: the code may have stood since, so a series' beam monitor vouches for
+        no frame after it (its other polls did not ask)."""
+        if not self.config.error_query:
+            return
+        now = time.monotonic()
+        if self._error_read_at is not None and now - self._error_read_at < ERROR_POLL_S:
+            return
+        self._error_read_at, asked, good = now, time.time(), self._error_good_at
+        code = self.error_code()
+        if code == 0 or code in self.config.allowed_error_codes:
+            self._error_good_at = asked
+            return
+        try:  # the code is the cause: not asked again after the switch-off
+            self._trip(f"controller error code {code} {when} (SER {code}: {self._error_meaning(code)})", ask_code=False)
+        except SourceFault as err:
+            err.vouched_until = good if good is not None else float("-inf")
+            raise
 
     def operate_switch(self) -> str:
         """Dialect B's operate switch (``SRL``): ``REMOTE``, ``LOCAL`` or ``OFF``."""
@@ -2758,6 +2806,8 @@ class L8121:
             # stop by itself when it opens; L8121.md only says XON is refused then)
             if state.emitting and not self.interlock_closed():
                 self._trip("interlock open during the warm-up")
+            if state.emitting:
+                self._watch_error_code("during the warm-up")
             if state == SourceState.OVERLOAD:
                 raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
             if state == SourceState.WARMUP_NEEDED and (seen_running or elapsed > self.config.warmup_start_s):
@@ -3005,6 +3055,7 @@ class L8121:
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():
                 self._trip("interlock open")
+            self._watch_error_code("with the beam on")
             if abs(m_kv - kv) <= tol_kv and abs(m_ua - ua) <= tol_ua:
                 return {
                     "voltage_kv": m_kv,
@@ -3110,9 +3161,10 @@ class L8121:
 
         return reason
 
-    def _trip(self, reason: str | Callable[[bool], str]):
+    def _trip(self, reason: str | Callable[[bool], str], *, ask_code: bool = True):
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
-        returns, called after the switch-off; see :meth:`_reason_after_off`)."""
+        returns, called after the switch-off; see :meth:`_reason_after_off`). ``ask_code``: as
+        :meth:`_switched_off`'s."""
         state, failed = self._off_for_fault()
         if callable(reason):
             reason = reason(self.off_failed is None)
@@ -3120,7 +3172,7 @@ class L8121:
             # B reads state and current in separate exchanges: an overload between them looks
             # like a dropped beam until the STS after XOF says what it was
             reason = f"overload ({reason})"
-        err = self._switched_off(SourceFault, reason, state, failed)
+        err = self._switched_off(SourceFault, reason, state, failed, ask_code=ask_code)
         # the caller reports the SourceFault (the command line's error line; the series names a
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
@@ -3167,6 +3219,8 @@ class L8121:
         ``beam_drop_fraction`` of the set value (or above it by as much: ``2 - beam_drop_fraction``
         of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
+        With the beam on, ``SER`` is read last, at most every :data:`ERROR_POLL_S`: a code not in
+        ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`).
 
         A poll is routine: when another thread switches off meanwhile, that ``XOF`` goes right after
         the exchange on the link, and the poll sends nothing more and raises :class:`SwitchedOff`
@@ -3192,6 +3246,8 @@ class L8121:
             closed = self.interlock_closed()
             if self._beam is not None and not closed:
                 self._trip("interlock open")
+            if self._beam is not None:  # last: the beam checks above keep their period
+                self._watch_error_code("with the beam on")
         finally:
             self._local.epoch = None
         return {"state": state, "voltage_kv": kv, "current_ua": ua, "interlock_closed": closed, "time": time.time()}

@@ -361,7 +361,9 @@ def assert_off_at_the_first_chance(model, n_log, dialect, name):
     query that shows it -- len(poll) exchanges in all -- or, for a silent controller, the one
     query that met the silence (its reply time-out, L8121.md). A fault of the process (detector,
     disk, Ctrl-C) is known at once, so only the cycle already in flight may precede ``XOF``.
-    No control command may come before it, and ``STS`` (the confirmation) follows it."""
+    The cycle in flight may end with ``SER`` (read after the beam checks, at most every
+    ``ERROR_POLL_S``): one exchange more, once. No control command may come before it, and
+    ``STS`` (the confirmation) follows it."""
     from acquisition.l8121 import DIALECTS
 
     d = DIALECTS[dialect]
@@ -370,8 +372,9 @@ def assert_off_at_the_first_chance(model, n_log, dialect, name):
     assert "XOF" in after, f"{name}: no XOF after the fault: {after}"
     first = after.index("XOF")
     before = after[:first]
-    assert all(c in poll for c in before), f"{name}: {before} before XOF; only the poll {poll} may come first"
-    assert len(before) <= len(poll), f"{name}: {len(before)} exchanges before XOF ({before}); bound {len(poll)}"
+    assert all(c in (*poll, "SER") for c in before), f"{name}: {before} before XOF; only the poll {poll} may come first"
+    bound = len(poll) + min(before.count("SER"), 1)
+    assert len(before) <= bound, f"{name}: {len(before)} exchanges before XOF ({before}); bound {bound}"
     assert "STS" in after[first + 1 :], f"{name}: no STS after the XOF to confirm it: {after[first:]}"
 
 
@@ -530,6 +533,40 @@ def test_fault_matrix(
             text.split("\n")[0][:60],
         )
     )
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_controller_error_mid_step_stops_the_series_keeping_its_frames(tmp_path, scene_toml, bench, dialect):
+    """A relay or internal fault (SER 2) comes up with the beam on, mid-step: the beam monitor's
+    polls read SER too (at most every ERROR_POLL_S) and stop the series as an open interlock
+    does -- XOF confirmed, every frame taken so far in the file, the error naming the code. The
+    step's frames since SER was last read good are labelled invalid (the code may have stood
+    since). Before s47ser the step ran to its end and only the next on() refused."""
+    from acquisition.l8121 import ERROR_POLL_S
+
+    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=12, steps=[0.15])
+    p.sim.frame_period_s = 0.2  # paced: the step (2.4 s of beam) outlasts a SER interval
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    seen = {"frames": 0}
+
+    def hook(phase, info):
+        seen["frames"] += phase == "frame"
+        if phase == "frame" and seen["frames"] == 3 and "t" not in seen:
+            seen["t"] = model.time
+            model.controller_error(2)
+
+    with pytest.raises(SourceFault, match="controller error code 2") as info:
+        run(p, devices=dev, progress=False, on_phase=hook)
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    xof_t = next(e.t for e in model.log if e.command == "XOF" and e.t >= seen["t"])
+    assert xof_t - seen["t"] <= ERROR_POLL_S + 3 * POLL_S + 0.3, xof_t - seen["t"]
+    assert 3 <= res.frames_total < 2 + 12  # the step stopped, the frames before the fault kept
+    c = contents(p.output)
+    assert len(c["key"]) == res.frames_total and list(c["key"][:2]) == [ImageKey.DARK, ImageKey.FLAT]
+    # SER was last read good before this step's XON: its frames are kept but none is vouched for
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]
 
 
 def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(

@@ -12,13 +12,14 @@ reset. Against radiokit's emulator (its ``controller_error`` fault) and ``indepe
 from __future__ import annotations
 
 import os
+import time
 
 import pytest
 from independent_l8121 import Controller
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
-from acquisition.errors import SourceFault
-from acquisition.l8121 import L8121
+from acquisition.errors import DeviceError, SourceFault
+from acquisition.l8121 import DIALECTS, ERROR_POLL_S, L8121, SourceState
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 
@@ -151,3 +152,105 @@ def test_a_code_the_configuration_allows_and_a_unit_without_ser(dialect):
         with pytest.raises(ValueError, match="allowed_error_codes"):
             SourceConfig(allowed_error_codes=bad)
     assert SourceConfig.from_toml("[source]\nallowed_error_codes = [5, 7]").allowed_error_codes == (5, 7)
+
+
+# -- a controller error while the beam is on ------------------------------------------------------
+# L8121.md: B's 1-4 are relay or internal faults of the control board; "a relay or internal fault
+# with high voltage on" is a reason to stop. Before s47ser, SER was asked only before an X-ray
+# command: a code that came up mid-exposure went unnoticed for the whole exposure (review s47).
+
+
+def _poll_until_fault(src, budget_s: float = 3.0) -> None:
+    """``check()`` every ``poll_s`` for at most ``budget_s``, as the series' beam monitor does."""
+    deadline = time.monotonic() + budget_s
+    while time.monotonic() < deadline:
+        src.check()
+        time.sleep(src.config.poll_s)
+    pytest.fail(f"no fault within {budget_s:g} s of polling")
+
+
+def _ser_times(model, since: int = 0) -> list[float]:
+    return [e.t for e in model.log[since:] if e.command == "SER"]
+
+
+@pytest.mark.parametrize("code", [2, 4])
+def test_a_controller_error_with_the_beam_on_switches_off(dialect, code):
+    """The code comes up mid-exposure (the emulator's state stays X-rays on, as L8121.md relates
+    it to no state): the polls read SER at most every ERROR_POLL_S, between their beam checks,
+    and the first one that reads it switches off (XOF, confirmed by STS) and names the code."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        src.on(60, 250)
+        src.check()
+        n, t_fault = len(model.log), model.time
+        model.controller_error(code)
+        with pytest.raises(SourceFault) as err:
+            _poll_until_fault(src)
+        assert src.tube_confirmed_off
+    text = str(err.value)
+    assert f"controller error code {code}" in text and MEANING[dialect] in text, text
+    assert "X-rays switched off" in text, text
+    assert not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[n:]]
+    first = after.index("XOF")
+    poll = [DIALECTS[dialect].readings[r].command for r in DIALECTS[dialect].poll]
+    # the beam checks went on meanwhile: only the poll's queries and the one SER that read the code
+    assert set(after[:first]) <= {*poll, "SER"} and after[:first].count("SER") == 1, after
+    assert after[first - 1] == "SER" and "STS" in after[first + 1 :], after
+    xof_t = next(e.t for e in model.log[n:] if e.command == "XOF")
+    # at most one SER interval and one poll cycle (its queries, poll_s) from the fault to XOF
+    assert xof_t - t_fault <= ERROR_POLL_S + 0.5, xof_t - t_fault
+    # a bounded rate: on()'s SER before XON, then one every ERROR_POLL_S at most
+    sers = _ser_times(model)
+    assert all(b - a >= ERROR_POLL_S * 0.99 for a, b in zip(sers[-2:-1], sers[-1:])), sers
+
+
+def test_a_garbled_ser_reply_with_the_beam_on_is_as_bad_as_any_garbled_poll(dialect):
+    """An unreadable SER mid-exposure is what an unreadable SAR or SIN is (check()'s reading):
+    the fail-safe switches off, confirmed, and the error names the reply."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        src.on(60, 250)
+        model.garble_once("SER")
+        with pytest.raises(DeviceError, match="unparseable reply to SER"):
+            _poll_until_fault(src)
+        assert src.tube_confirmed_off and not model.xray_on
+    assert "XOF" in commands_after_ser(model)
+
+
+def commands_after_ser(model) -> list[str]:
+    cmds = model.commands
+    return cmds[len(cmds) - cmds[::-1].index("SER") :]
+
+
+def test_a_controller_error_during_the_warm_up_switches_it_off(dialect):
+    """The warm-up emits (B reports it as AGING): a code that comes up while it runs stops it as
+    an open interlock does, switched off and named, long before the warm-up would have ended."""
+    model = L8121Model(dialect=dialect, warmup_s=5.0, ramp_s=0.1)
+    start = "WUP" if dialect == "A" else "XON"
+    model.inject_after(start, lambda: model.controller_error(3, at_s=model.time + 0.1))
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
+        t0 = time.monotonic()
+        with pytest.raises(SourceFault) as err:
+            src.warm_up(timeout_s=10, progress=False)
+        assert time.monotonic() - t0 < ERROR_POLL_S + 1.0
+        assert src.tube_confirmed_off
+    assert "controller error code 3" in str(err.value) and "warm-up" in str(err.value), str(err.value)
+    assert model.state != SourceState.WARMING_UP and not model.xray_on and "RST" not in model.commands
+
+
+def test_cli_source_on_for_stops_on_a_controller_error(dialect, capsys):
+    """``radiokit acquire source on --for``: the hold's polls read SER too; a code that comes up
+    0.2 s after XON ends the hold (exit 1), the tube off, confirmed, the line naming the code."""
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    model.inject_after("XON", lambda: model.controller_error(2, at_s=model.time + 0.2))
+    with PtyServer(model) as server:
+        args = ["--port", server.url, "--dialect", dialect, "--kv", "60", "--ua", "250", "--for", "10"]
+        t0 = time.monotonic()
+        assert main(["acquire", "source", "on", *args]) == 1
+        assert time.monotonic() - t0 < 4.0  # not the 10 s hold
+    err = capsys.readouterr().err.strip().splitlines()
+    assert any("controller error code 2" in line for line in err), err
+    assert not model.xray_on and "XOF" in model.commands and "RST" not in model.commands

@@ -26,8 +26,9 @@ Safety and data, as ``../shared/hardware/L8121.md`` and DESIGN.md ask:
   switch-off (:class:`acquisition.guardian.SignalGuard`). ``Result.tube_off`` says whether it was
   confirmed. On the lab's port (and ``[sim] source_port``), a guardian process holds the link and
   switches off if this process is killed outright (:mod:`acquisition.guardian`);
-- while X-rays are on a monitor thread polls the source (``SAR``/``SIN`` every ``poll_s``) and on
-  overload, interlock or a dropped beam switches the tube off at once and stops the series;
+- while X-rays are on a monitor thread polls the source (``SAR``/``SIN`` every ``poll_s``, ``SER``
+  at most every second) and on overload, interlock, a dropped beam (or one far above its setting)
+  or a controller error code switches the tube off at once and stops the series;
 - every serial exchange, phase and fault is logged to ``<output>.log`` beside the file (the lab
   notebook);
 - every frame is appended and flushed to the experiment file as it arrives, with image_key,
@@ -882,6 +883,7 @@ class _BeamMonitor:
                 self.last_ok = t
             except BaseException as exc:  # a fault, a silent controller, garbage: stop the series
                 self.error = exc
+                self._unvouch(exc)
                 from acquisition.l8121 import SwitchedOff
 
                 if isinstance(exc, SwitchedOff):  # another thread switched off during the poll
@@ -911,9 +913,16 @@ class _BeamMonitor:
             reading = self.source.check()
         except BaseException as exc:
             self.error = exc
+            self._unvouch(exc)
             raise
         self.last_ok = t
         self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
+
+    def _unvouch(self, exc):
+        """A fault that may have stood since before the last good poll (a controller error code,
+        read less often than the beam: the driver's ``vouched_until``) moves the vouched-for time
+        back to when it was last read good."""
+        self.last_ok = min(self.last_ok, getattr(exc, "vouched_until", self.last_ok))
 
     def suspect(self):
         """File indices of this beam period's frames taken after the last good poll: once the
