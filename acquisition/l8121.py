@@ -1533,6 +1533,8 @@ class L8121:
         # time.time() just before the last SER read that found no fault: a beam's frames after it
         # are not vouched for once a later SER reads one (the code may have stood since)
         self._error_good_at: float | None = None
+        # the previous ones while set_values() ramps the beam on to new ones (_beam_span)
+        self._beam_from: tuple[int, int] | None = None
         # One switch-off at a time, and it goes first: the thread that owns it (_off_thread) sends
         # its XOF/STS before any other thread's queued exchange, and a second caller of off()
         # waits for its outcome instead of repeating it (a silent controller would cost each
@@ -2590,6 +2592,7 @@ class L8121:
             # while on, B's SPV/SPC read the presets (PHV/PCU), which HIV/CUR are not said to change
             # (L8121.md): the tube's values are the ones this driver last set and saw stable
             _, old_ua = self._beam if beam_on and self.dialect is DIALECT_B else self.setpoint()
+            self._beam_from = self._beam  # (None while off)
             if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
                 self._do(voltage, kv_i)
                 self._do(current, ua_i)
@@ -2607,6 +2610,8 @@ class L8121:
             if beam_on:
                 self._off_quietly()
             raise
+        finally:
+            self._beam_from = None
         return kv_i, ua_i
 
     def _read_back(self, kv: int, ua: int) -> tuple[float, float]:
@@ -3047,9 +3052,9 @@ class L8121:
                 continue
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
-            # a ramp from zero after XON never passes the setting by the drop bound's margin (one
-            # after set_values() starts from the old values, which may lie that far above)
-            above = _beam_above(m_kv, m_ua, kv, ua, c.beam_drop_fraction) if after_xon else None
+            # a ramp from zero after XON never passes the setting by the drop bound's margin, nor
+            # one after set_values() the higher of the old and the new ones (_beam_span)
+            above = _beam_above(m_kv, m_ua, *self._beam_span((kv, ua))[1], c.beam_drop_fraction)
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
@@ -3122,13 +3127,13 @@ class L8121:
             return f"beam dropped: state {state.name} instead of XRAY_ON"
         if not ramping and beam is not None:
             f = self.config.beam_drop_fraction
-            set_kv, set_ua = beam
+            (set_kv, set_ua), high = self._beam_span(beam)
             dropped = None
             if ua < f * set_ua:
                 dropped = f"measured current {ua:g} µA, below {f:.0%} of the set {set_ua} µA"
             elif kv < f * set_kv:
                 dropped = f"measured voltage {kv:g} kV, below {f:.0%} of the set {set_kv} kV"
-            above = _beam_above(kv, ua, set_kv, set_ua, f)
+            above = _beam_above(kv, ua, *high, f)
             if dropped is None and above is not None:
                 return f"beam above the setting: {above}"
             if dropped is not None:
@@ -3138,6 +3143,18 @@ class L8121:
                 told = getattr(self._transport, "watchdog_off", None)
                 return f"{told}; then {dropped}" if told else f"beam dropped: {dropped}"
         return None
+
+    def _beam_span(self, beam: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
+        """The lower and the higher of ``beam`` and the setting set_values() ramps the beam away
+        from (each of kV and µA), or ``beam`` twice. While the beam ramps to a new setting
+        (L8121.md: over a few seconds "after XON or a change") it lies between the two: a beam
+        monitor's poll meanwhile judged it by the new one alone, and called 400 -> 100 µA "above
+        the setting" and 100 -> 400 µA "dropped", switching off mid-hold (review s47rv3)."""
+        was = self._beam_from
+        if was is None:
+            return beam, beam
+        low, high = (min(a, b) for a, b in zip(beam, was)), (max(a, b) for a, b in zip(beam, was))
+        return tuple(low), tuple(high)
 
     def _evident_fault(self, state: SourceState, kv: float, ua: float) -> bool:
         """Whether a beam reading alone shows that the beam this driver keeps is not as set (a

@@ -827,11 +827,10 @@ def _check_register_memory(args, fixed) -> None:
 
 
 def cmd_register(args) -> int:
-    from radiokit.io import RegistrationRecord, atomic_path, write_registration
+    from radiokit.io import RegistrationRecord
     from radiokit.register import register, with_default_preset
 
     fixed, moving, mask = _register_inputs(args)
-    inputs = [args.fixed, args.moving]
     _check_preset(args)
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
@@ -856,14 +855,9 @@ def cmd_register(args) -> int:
     record = RegistrationRecord(
         reg.method, str(args.fixed), str(args.moving), reg.displacement, registered, quality, reg.confidence
     )
-    with contextlib.ExitStack() as figure:
-        # the figure is drawn into its temporary before the field is renamed into place, and
-        # renamed itself just after: a Ctrl-C (or a refused figure) while matplotlib drew left
-        # the new field beside the previous run's figure, "no partial output was left" said
-        if args.png:
-            tmp = figure.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs))
-            _register_png(tmp, fixed, moving, registered, reg)
-        write_registration(args.output, record, overwrite=args.overwrite, inputs=inputs)
+    stopped = _write_register_outputs(args, record, lambda tmp: _register_png(tmp, fixed, moving, registered, reg))
+    if stopped is not None:
+        return stopped
     print(
         f"{reg.method}: {q.seconds:.2f} s, {q.iterations} iterations; residual complexity "
         f"{q.rc_before:.5g} -> {q.rc_after:.5g}, NCC {q.ncc_before:.4f} -> {q.ncc_after:.4f}; "
@@ -891,6 +885,42 @@ def cmd_register(args) -> int:
     if args.png:
         print(f"figure {args.png}")
     return 0 if q.ok else 1
+
+
+def _write_register_outputs(args, record, draw) -> int | None:
+    """``-o``'s field and ``--png``'s figure (``draw(temporary)``), each written into its
+    temporary first (a stop or a refused figure meanwhile leaves both as they were), then both
+    renamed into place as one step a stop cannot cut: one landing between the two renames (the
+    field's folder fsync) left the new field beside the previous run's figure, and the command
+    said "no partial output was left" (review s47rv3). A stop held over the renames is told once
+    both are done, naming them; its exit status is returned (None: not stopped)."""
+    from radiokit.interrupts import STOP_SIGNALS, exit_status, held, settle
+    from radiokit.io import OutputError, atomic_path, write_registration
+
+    inputs = [args.fixed, args.moving]
+    with contextlib.ExitStack() as outputs:
+        if args.png:
+            draw(outputs.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs)))
+        tmp = outputs.enter_context(atomic_path(args.output, overwrite=args.overwrite, inputs=inputs))
+        try:
+            write_registration(tmp, record, overwrite=True, inputs=inputs)
+        except OutputError as exc:  # (a read-only folder, a full disk) named as the user named it
+            exc.path = str(args.output) if exc.path == str(tmp) else exc.path
+            raise
+        settle()  # a stop lost meanwhile: raised now, before anything is renamed
+        renames = outputs.pop_all()
+    done = False
+    try:
+        with held(*STOP_SIGNALS):
+            renames.close()  # the field's rename, then the figure's
+            done = True
+    except KeyboardInterrupt as exc:
+        if not done:
+            raise
+        both = f"{args.output} and {args.png} were" if args.png else f"{args.output} was"
+        print(f"radiokit register: interrupted once {both} written (complete, this run's)", file=sys.stderr)
+        return exit_status(exc)
+    return None
 
 
 #: NCC before registering below which a flagged pair is taken for each other's negative

@@ -146,6 +146,35 @@ def test_register_stopped_while_drawing_its_figure_keeps_the_previous_field(stop
     no_temporaries(tmp_path)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_register_stopped_between_its_two_renames_leaves_a_pair(sig, images, tmp_path, monkeypatch):
+    """A stop landing after reg.h5 was renamed into place and before reg.png was (the field's
+    folder fsync, the figure's own rename): the figure's temporary was removed, reg.h5 was the new
+    field beside the previous run's figure, and the command said "no partial output was left".
+    The two renames are one step a stop cannot cut: both files are the new run's (review s47rv3)."""
+    fixed, moving = images
+    field, figure = tmp_path / "reg.h5", tmp_path / "reg.png"
+    args = ["register", fixed, moving, "-o", field, "--png", figure, "--overwrite"]
+    assert run_cli(*args).returncode in (0, 1)
+    before = {p: p.stat().st_ino for p in (field, figure)}  # (one pair draws one figure, byte for byte)
+    real_replace = os.replace
+
+    def replace_then_stop(src, dst, *rest, **kw):
+        real_replace(src, dst, *rest, **kw)
+        if Path(dst) == field:
+            signal.raise_signal(sig)  # as a Ctrl-C (or kill) right after the field's rename
+
+    monkeypatch.setattr(os, "replace", replace_then_stop)
+    res = run_cli(*args)
+    changed = {p for p in before if p.stat().st_ino != before[p]}
+    assert changed in (set(), {field, figure}), (changed, res.stderr)  # was: {reg.h5} alone
+    assert res.returncode == 128 + sig, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr, res.stderr
+    if changed:  # the line says what is there, not "no partial output was left"
+        assert "no partial output" not in res.stderr and str(figure) in res.stderr, res.stderr
+    no_temporaries(tmp_path)
+
+
 @pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
 def test_a_read_only_output_is_refused_even_with_overwrite(cmd, experiment, images, tmp_path):
     """A file its owner made read-only (chmod a-w) was replaced by --overwrite, as a writable

@@ -1287,6 +1287,40 @@ def test_set_values_while_on_waits_for_the_new_beam(source, dialect):
     assert src.check()["current_ua"] >= 0.9 * 400  # judged against the new current: no false "dropped"
 
 
+@pytest.mark.parametrize(("before", "after"), [((60, 400), (60, 100)), ((60, 100), (60, 400))])
+def test_a_monitor_polling_while_set_values_ramps_sees_no_fault(source, dialect, before, after):
+    """A beam monitor's check() in another thread while set_values() ramps the beam to a new
+    setting (L8121.md: the values "ramp towards the set values over a few seconds after XON or a
+    change"): judged against the new setting alone, 400 -> 100 µA read 'above the setting' (past
+    1.5 x 100 + 1; s47acq's new bound) and 100 -> 400 µA 'dropped' (below 0.5 x 400), and the
+    beam was switched off mid-hold. While it ramps it is judged by both settings (review s47rv3)."""
+    src, model = source
+    src.on(*before)
+    model.ramp_s = 0.6  # a few polls inside the ramp
+    faults, stop = [], threading.Event()
+
+    def monitor():
+        while not stop.wait(src.config.poll_s):  # as a series' beam monitor polls
+            try:
+                src.check()
+            except Exception as exc:  # recorded: the assertion names it
+                faults.append(exc)
+                return
+
+    poller = threading.Thread(target=monitor)
+    poller.start()
+    try:
+        src.set_values(*after)
+    except SourceFault as exc:
+        faults.append(exc)
+    finally:
+        stop.set()
+        poller.join()
+    assert faults == [] and model.xray_on, faults
+    ua = src.check()["current_ua"]
+    assert abs(ua - after[1]) <= src.config.tolerance_ua(after[1])
+
+
 def test_unknown_setting_is_named():
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['kv_maximum'\]"):
         L8121("loop://", connect=False, kv_maximum=90)
