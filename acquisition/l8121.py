@@ -2520,6 +2520,34 @@ class L8121:
             err.vouched_until = good if good is not None else float("-inf")
             raise
 
+    def error_code_after_beam(self) -> None:
+        """After a beam period's normal ``XOF``: read ``SER`` once, the tube off, so that the
+        period's last second (a poll within :data:`ERROR_POLL_S` of the last read skips it, and
+        after a series' last period nothing reads it again) is vouched for by a read too, without
+        holding the switch-off back. A code not allowed raises :class:`SourceFault` naming it; it
+        and a failed read carry ``vouched_until`` (see :meth:`_watch_error_code`). Nothing is
+        switched or reset. ``error_query = false``: nothing."""
+        if not self.config.error_query:
+            return
+        asked, good = time.time(), self._error_good_at
+        vouched = good if good is not None else float("-inf")
+        try:
+            code = self.error_code()
+        except DeviceError as err:
+            err.vouched_until = vouched
+            raise
+        finally:
+            self._error_read_at = time.monotonic()
+        if code == 0 or code in self.config.allowed_error_codes:
+            self._error_good_at = asked
+            return
+        err = SourceFault(
+            f"{self.port}: controller error code {code} read after X-rays were switched off (SER {code}: "
+            f"{self._error_meaning(code)}); it may have stood since the last read with the beam on"
+        )
+        err.vouched_until = vouched
+        raise err
+
     def operate_switch(self) -> str:
         """Dialect B's operate switch (``SRL``): ``REMOTE``, ``LOCAL`` or ``OFF``."""
         return self._read("operate_switch")
@@ -3228,7 +3256,7 @@ class L8121:
             return None
         return code or None
 
-    def check(self) -> dict[str, Any]:
+    def check(self, *, error_code: bool = True) -> dict[str, Any]:
         """Poll once (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``, ``SCU``, ``SIN``) and stop on a fault.
 
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
@@ -3237,7 +3265,9 @@ class L8121:
         of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
         With the beam on, ``SER`` is read last, at most every :data:`ERROR_POLL_S`: a code not in
-        ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`).
+        ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`). ``error_code=False``
+        skips it: the poll just before a normal ``XOF``, whose ``SER`` (an exchange, or a reply
+        time-out, more before the switch-off) is read after it instead (:meth:`error_code_after_beam`).
 
         A poll is routine: when another thread switches off meanwhile, that ``XOF`` goes right after
         the exchange on the link, and the poll sends nothing more and raises :class:`SwitchedOff`
@@ -3263,7 +3293,7 @@ class L8121:
             closed = self.interlock_closed()
             if self._beam is not None and not closed:
                 self._trip("interlock open")
-            if self._beam is not None:  # last: the beam checks above keep their period
+            if self._beam is not None and error_code:  # last: the beam checks above keep their period
                 self._watch_error_code("with the beam on")
         finally:
             self._local.epoch = None

@@ -569,6 +569,48 @@ def test_a_controller_error_mid_step_stops_the_series_keeping_its_frames(tmp_pat
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(
+    tmp_path, scene_toml, bench, dialect, monkeypatch
+):
+    """SER is read at most every ERROR_POLL_S: a code that comes up after the last read of a beam
+    period (here: no read during it at all) was vouched for by the period's end (its last poll
+    skips SER within the interval, and after the series' last period nobody reads it again). The
+    driver reads SER once the tube is off (XOF is not delayed by it): a code not allowed stops the
+    series and labels the frames since the last good SER invalid (review s47rv4)."""
+    import acquisition.l8121 as l8121
+
+    monkeypatch.setattr(l8121, "ERROR_POLL_S", 1e6)  # no SER with the beam on: the gap, deterministic
+    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    seen = {"frames": 0}
+
+    def hook(phase, info):
+        seen["frames"] += phase == "frame"
+        if phase == "frame" and seen["frames"] == 4:  # the step's second frame
+            seen["n"] = len(model.log)
+            model.controller_error(2)
+
+    with pytest.raises(SourceFault, match="controller error code 2") as info:
+        run(p, devices=dev, progress=False, on_phase=hook)
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[seen["n"] :]]
+    first = after.index("XOF")  # the period's normal end: its last beam checks, then XOF, then SER
+    assert "SER" not in after[:first] and "SER" in after[first:], after
+    c = contents(p.output)
+    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
+    assert list(c["key"][:2]) == [ImageKey.DARK, ImageKey.FLAT]  # the flats' period read SER good after
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]
+    # --resume retakes the step's three frames, none lost, none twice (fresh devices: the code cleared)
+    p2 = protocol(tmp_path, scene_toml, dialect, link_s=0.002, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    res2 = run(p2, devices=sim_devices(p2, bench=bench), resume=True, progress=False)
+    keys = contents(p.output)["key"]
+    assert res2.phase == "done" and res2.frames_written == 3 and len(keys) == 8, keys
+    assert list(keys[5:]) == [ImageKey.PROJECTION] * 3 and np.sum(keys == ImageKey.INVALID) == 3, keys
+
+
 def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(
     tmp_path, scene_toml, bench, capsys
 ):

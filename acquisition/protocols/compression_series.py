@@ -905,18 +905,31 @@ class _BeamMonitor:
         if self.error is not None:
             raise self.error
 
-    def confirm(self):
+    def confirm(self, error_code: bool = True):
         """One synchronous poll: if the beam is still good, every frame so far is vouched for; if
-        not, the error is recorded (and raised) like the thread's."""
+        not, the error is recorded (and raised) like the thread's. ``error_code=False``: the
+        beam checks only (the driver's ``check``), ``SER`` being read after the ``XOF``
+        (:meth:`confirm_error_code`)."""
         t = time.time()
         try:
-            reading = self.source.check()
+            reading = self.source.check(error_code=error_code)
         except BaseException as exc:
             self.error = exc
             self._unvouch(exc)
             raise
         self.last_ok = t
         self.kv, self.ua = _kv_ua(reading, self.kv, self.ua)
+
+    def confirm_error_code(self):
+        """The tube off after this beam period: the controller's error code read once more (the
+        driver's ``error_code_after_beam``); a code not allowed, or no reading, takes the vouching
+        back to the last good ``SER`` and is recorded (and raised) like a poll's fault."""
+        try:
+            self.source.error_code_after_beam()
+        except BaseException as exc:
+            self.error = exc
+            self._unvouch(exc)
+            raise
 
     def _unvouch(self, exc):
         """A fault that may have stood since before the last good poll (a controller error code,
@@ -1371,7 +1384,8 @@ def _beam_on(r: _Run, n: int, what: str):
 def _beam_off(r: _Run):
     r.monitor.stop()
     r.monitor.raise_if_failed()  # the fault itself, not what switching off then ran into
-    r.monitor.confirm()  # the beam was good up to the last frame (faults latch)
+    # the beam was good up to the last frame (faults latch); SER after the XOF, not before it
+    r.monitor.confirm(error_code=False)
     r.source.off()
     took = time.perf_counter() - r.beam_since
     r.beam_on_s += took
@@ -1390,6 +1404,7 @@ def _beam_off(r: _Run):
             r.p.detector.frame_period_s,
             RAMP_ESTIMATE_S,
         )
+    r.monitor.confirm_error_code()  # the tube off: the period's frames since the last SER read
 
 
 def _phase_darks(r: _Run):
