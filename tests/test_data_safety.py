@@ -30,7 +30,7 @@ import pytest
 import tifffile
 from conftest import mounted_tmpfs, one_line_error, read_only, run_cli, synthetic, writable_copy
 
-from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path, read
+from radiokit.io import RESULTS_MARKER, ExperimentWriter, ImageKey, atomic_path, read, recover_interrupted
 
 ROOT = Path(__file__).resolve().parents[1]
 ROI = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
@@ -825,8 +825,17 @@ def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
     for _ in range(3):
         proc = _popen("process", exp, "-o", out, "--overwrite", "--no-report", *fast)
         assert _kill_when(proc, tmp_path, ".res.tmp-*/results.h5")
-        now = tree_sha(out)
         assert sha(exp) == inputs
+        if not os.path.lexists(out):
+            # landed between renaming the previous folder aside and the new one into place (the
+            # module's documented window, seen once in session 47): the previous one is aside, whole,
+            # and what the next run to that output does first puts it back
+            aside = list(tmp_path.glob(".res.old-*"))
+            assert len(aside) == 1 and tree_sha(aside[0]) == previous, aside
+            recover_interrupted(out)
+            assert tree_sha(out) == previous and not list(tmp_path.glob(".res.old-*"))
+            return
+        now = tree_sha(out)
         if now == previous:
             return
         assert {"results.h5", "results.json", ".radiokit-output"} <= set(now), now  # the whole new run
