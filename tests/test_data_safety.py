@@ -1006,6 +1006,9 @@ import os, signal, sys
 from pathlib import Path
 from radiokit.io import _atomic
 out = Path(sys.argv[1])
+# the rename-aside route, the one a system without renameat2's RENAME_EXCHANGE takes (a fake
+# for a file system this machine lacks): the previous folder renamed aside, the name missing
+_atomic._exchange_in = lambda tmp, path: False
 real, calls = _atomic._strangers, []
 def strangers(folder):  # the second look is _swap_in's, the old folder just renamed aside
     calls.append(folder)
@@ -1119,6 +1122,42 @@ def _left_aside(out: Path, monkeypatch) -> Path:
     _results_folder(out.parent / "built")
     (out.parent / "built").rename(aside)
     return aside
+
+
+def test_a_results_folder_replaced_is_never_missing_at_its_name(tmp_path, monkeypatch):
+    """Where the system swaps two names in one step (renameat2's RENAME_EXCHANGE; Linux), the
+    previous results folder and the new one are swapped: at every step of the replacement the
+    name holds a complete folder. Renamed aside first, it was missing while the folder aside was
+    looked into for files added during the run, where a kill left it missing (the suite, session
+    47). A file added during the run still swaps the previous folder back."""
+    from radiokit.io import _atomic
+
+    if _atomic._renameat2() is None:
+        pytest.skip("no renameat2 here: the rename-aside route (absent in between) is the one taken")
+    out = tmp_path / "res"
+    _results_folder(out)
+    seen = []
+    looked = _atomic._strangers
+
+    def strangers(folder):
+        seen.append(os.path.isfile(out / RESULTS_MARKER))  # the name holds a complete folder
+        found = looked(folder)
+        if add_at == len(seen):  # once looked at just before the swap: too late to be seen there
+            (out / "notes.txt").write_text("the user's")
+        return found
+
+    monkeypatch.setattr(_atomic, "_strangers", strangers)
+    add_at = 0
+    with _atomic.atomic_dir(out, overwrite=True) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert seen and all(seen), seen
+    assert (out / "new.txt").read_text() == "new" and not list(tmp_path.glob(".res.*"))
+    before, seen[:], add_at = tree_sha(out), [], 2  # 1: atomic_dir's start, 2: just before the swap
+    with pytest.raises(_atomic.OutputError, match="added during the run"):
+        with _atomic.atomic_dir(out, overwrite=True) as tmp:
+            (tmp / "newer.txt").write_text("newer")
+    assert len(seen) == 3 and all(seen), seen  # looked for again once swapped out, then swapped back
+    assert tree_sha(out) == {**before, "notes.txt": sha(out / "notes.txt")} and not list(tmp_path.glob(".res.*"))
 
 
 def test_recover_interrupted_clears_what_a_killed_writer_left_of_a_results_folder(tmp_path, monkeypatch):

@@ -8,7 +8,8 @@ written at its target, beside which its temporary is made; the link is kept. An 
 previous complete output, or none: never a truncated file or a folder mixing two runs. A kill
 -9 can leave the hidden temporary (``.NAME.tmp-HOST-PID-XXXXXXXX``) behind; it is never mistaken
 for output, and the next run writing the same output on that host removes it once its process is
-gone. A results folder being replaced is renamed aside (``.NAME.old-HOST-PID-XXXXXXXX``) while the
+gone. A results folder being replaced is swapped with the new one in one step where the system
+can (Linux's renameat2), so its name is never missing; elsewhere it is renamed aside (``.NAME.old-HOST-PID-XXXXXXXX``) while the
 new one is swapped in: that one is the user's previous results, never removed but by the run that
 put it aside once its new folder is in place; a kill -9 in between leaves it, and the next run to
 that output puts it back at its name.
@@ -26,13 +27,14 @@ import os
 import re
 import secrets
 import shutil
+import signal
 import socket
 import stat
 import warnings
 from pathlib import Path
 
 from radiokit.errors import RadiokitError
-from radiokit.interrupts import settle
+from radiokit.interrupts import held, settle
 
 __all__ = [
     "atomic_path",
@@ -740,6 +742,26 @@ def _rename_noreplace(src: Path, dst: Path) -> bool:
     raise OSError(err, os.strerror(err), str(src), None, str(dst))
 
 
+#: renameat2's flag: swap the two names in one step
+_RENAME_EXCHANGE = 2
+
+
+def _rename_exchange(a: Path, b: Path) -> bool:
+    """Swap what is at ``a`` and at ``b`` in one step: True when done, False where the system (or
+    the file system) offers no such rename."""
+    import ctypes
+
+    fn = _renameat2()
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in _UNSUPPORTED:
+        return False
+    raise OSError(err, os.strerror(err), str(a), None, str(b))
+
+
 def _publish(tmp: Path, path: Path, folder=False) -> None:
     """Rename ``tmp`` to ``path`` only where nothing is there, else :class:`OutputAppearedError`
     (``tmp`` left for the caller to remove).
@@ -896,8 +918,10 @@ def atomic_dir(path, *, overwrite=False, inputs=(), made_by="process"):
 
     The previous folder (only replaced with ``overwrite``, and only if ``radiokit made_by`` made
     it: :func:`check_output`; the new one's marker names that command) is
-    renamed aside, the new one renamed into place, then the old one removed: at every instant
-    ``path`` is the previous complete output, the new complete output, or absent.
+    swapped with the new one in one step (:func:`_exchange_in`), then removed: at every instant
+    ``path`` is the previous complete output or the new one. Where the system cannot swap, it is
+    renamed aside and the new one renamed into place: ``path`` is absent in between, and the next
+    run to it puts a previous folder a kill left aside back.
     """
     path = check_output(path, overwrite=overwrite, inputs=inputs, folder=True, made_by=made_by)
     strangers = _strangers(path) if (path / RESULTS_MARKER).exists() else []
@@ -954,6 +978,8 @@ def _swap_in(tmp: Path, path: Path, inputs, made_by: str) -> None:
         _publish(tmp, path, folder=True)
         return
     _check_output(path, True, inputs, made_by)  # a folder, radiokit's, of this command, writable
+    if _exchange_in(tmp, path):
+        return
     old = _temporary_name(path, folder=True, kind="old")
     os.rename(path, old)
     try:
@@ -973,6 +999,44 @@ def _swap_in(tmp: Path, path: Path, inputs, made_by: str) -> None:
     except OSError:
         gone = old
     shutil.rmtree(gone, ignore_errors=True)
+
+
+def _exchange_in(tmp: Path, path: Path) -> bool:
+    """Swap the new folder ``tmp`` and the previous one at ``path`` in one step
+    (renameat2(RENAME_EXCHANGE)), then remove the previous one, now at ``tmp``'s name: True when
+    done; False where the system offers no such rename, or the previous folder already holds a
+    file radiokit did not write (the rename-aside route, which refuses it, is taken then).
+
+    Why: renamed aside first and the new one renamed in after, ``path`` was missing in between (the
+    look for files added during the run lies there too): a kill landing then left the name missing
+    and the previous results in a hidden folder until the next run put them back (seen in the
+    suite, session 47). Swapped, ``path`` is at every instant the previous or the new complete
+    output. A file added to the previous folder during the run (looked for again once it is
+    swapped out, where nothing more is added under its name) swaps it back, and the run's results
+    are discarded, as on the rename-aside route. Stops are held over the swap and the look: a
+    stop between them would have deleted the previous folder as the run's temporary."""
+    if _strangers(path):
+        return False
+    with held(signal.SIGINT, signal.SIGTERM):
+        if not _rename_exchange(tmp, path):
+            return False
+        try:
+            strangers = _strangers(tmp)
+        except BaseException:
+            _rename_exchange(tmp, path)
+            raise
+        if strangers:
+            _rename_exchange(tmp, path)
+            raise OutputError(
+                path,
+                f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...), added during "
+                f"the run; it was not replaced and this run's results were discarded: move them and run again, "
+                "or choose a new folder",
+            )
+    # the previous folder lies at a temporary's name: a removal cut short leaves a `tmp` leftover,
+    # which the next run removes (the new output is in place), as after the rename-aside route
+    shutil.rmtree(tmp, ignore_errors=True)
+    return True
 
 
 def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
