@@ -724,21 +724,28 @@ def _renameat2():
     return fn
 
 
-def _rename_noreplace(src: Path, dst: Path) -> bool:
-    """Rename ``src`` to ``dst`` only where nothing is at ``dst``, in one step: True when done,
-    FileExistsError when something is there, False where the system offers no such rename."""
+def _renameat2_call(src: Path, dst: Path, flag: int) -> int | None:
+    """renameat2(``src``, ``dst``, ``flag``): 0 when done, else its errno; None where the system
+    has no renameat2, or (``_UNSUPPORTED``) says it does not do that flag."""
     import ctypes
 
     fn = _renameat2()
     if fn is None:
-        return False
-    if fn(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), _RENAME_NOREPLACE) == 0:
-        return True
+        return None
+    if fn(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), flag) == 0:
+        return 0
     err = ctypes.get_errno()
+    return None if err in _UNSUPPORTED else err
+
+
+def _rename_noreplace(src: Path, dst: Path) -> bool:
+    """Rename ``src`` to ``dst`` only where nothing is at ``dst``, in one step: True when done,
+    FileExistsError when something is there, False where the system offers no such rename."""
+    err = _renameat2_call(src, dst, _RENAME_NOREPLACE)
+    if err is None or err == 0:
+        return err == 0
     if err == errno.EEXIST:
         raise FileExistsError(err, os.strerror(err), str(dst))
-    if err in _UNSUPPORTED:
-        return False
     raise OSError(err, os.strerror(err), str(src), None, str(dst))
 
 
@@ -749,16 +756,9 @@ _RENAME_EXCHANGE = 2
 def _rename_exchange(a: Path, b: Path) -> bool:
     """Swap what is at ``a`` and at ``b`` in one step: True when done, False where the system (or
     the file system) offers no such rename."""
-    import ctypes
-
-    fn = _renameat2()
-    if fn is None:
-        return False
-    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    err = ctypes.get_errno()
-    if err in _UNSUPPORTED:
-        return False
+    err = _renameat2_call(a, b, _RENAME_EXCHANGE)
+    if err is None or err == 0:
+        return err == 0
     raise OSError(err, os.strerror(err), str(a), None, str(b))
 
 
