@@ -824,9 +824,11 @@ def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
     # complete, and it is tried again, the new folder the one to keep, until a kill lands mid-write.
     for _ in range(3):
         proc = _popen("process", exp, "-o", out, "--overwrite", "--no-report", *fast)
-        assert _kill_when(proc, tmp_path, ".res.tmp-*/results.h5")
+        # False: the run ended before its results were seen (under load, the milliseconds between
+        # results.h5 and the swap): its folder must be whole, and it is tried again, as after a late kill
+        killed = _kill_when(proc, tmp_path, ".res.tmp-*/results.h5")
         assert sha(exp) == inputs
-        if not os.path.lexists(out):
+        if killed and not os.path.lexists(out):
             # landed between renaming the previous folder aside and the new one into place (the
             # module's documented window, seen once in session 47): the previous one is aside, whole,
             # and what the next run to that output does first puts it back
@@ -836,7 +838,7 @@ def test_process_killed_mid_write_leaves_the_previous_complete_folder(tmp_path):
             assert tree_sha(out) == previous and not list(tmp_path.glob(".res.old-*"))
             return
         now = tree_sha(out)
-        if now == previous:
+        if killed and now == previous:
             return
         assert {"results.h5", "results.json", ".radiokit-output"} <= set(now), now  # the whole new run
         previous = now
