@@ -51,7 +51,7 @@ import threading
 import time
 from pathlib import Path
 
-from radiokit.interrupts import STOP_SIGNALS, Interrupted, deferred, raise_stop, redeliver
+from radiokit.interrupts import STOP_SIGNALS, Interrupted, after_import, deferred, raise_stop, redeliver
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -320,6 +320,8 @@ class SignalGuard:
         self.received.append(signum)
         if self.stopping:
             _say(f"\n{signal.Signals(signum).name} received: switching the X-ray tube off first, please wait")
+            return
+        if after_import(signum, frame, self._redelivered):  # raised inside an import, a bare except swallowed it
             return
         self.stopping = True  # before raising: a second signal must not interrupt the cleanup
         raise StopSignal(signum)

@@ -1577,11 +1577,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _terminated(signum, frame):
-    """SIGTERM/SIGHUP/SIGQUIT (a closed terminal, ``kill``, Ctrl-\\): unwind like Ctrl-C, so that every output being
+    """Ctrl-C, SIGTERM/SIGHUP/SIGQUIT (a closed terminal, ``kill``, Ctrl-\\): unwind, so that every output being
     written is removed rather than left half-written under its temporary name. Should it land in
     a finalizer, where Python drops it, ``_main`` delivers it again (radiokit.interrupts)."""
-    from radiokit.interrupts import Interrupted
+    from radiokit.interrupts import Interrupted, after_import
 
+    if after_import(signum, frame):  # raised inside an import, a library's bare except swallowed it
+        return
     raise Interrupted(signum)
 
 
@@ -1765,7 +1767,9 @@ def _main(argv) -> int:
     _quiet_matplotlib()
     if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
         for sig in STOP_SIGNALS:
-            if sig != signal.SIGINT:  # Python's own Ctrl-C raises KeyboardInterrupt already
+            # Ctrl-C too, in place of Python's own (which raised inside an import, see _terminated);
+            # one the command was started ignoring (`cmd &` in a script) stays ignored
+            if sig != signal.SIGINT or signal.getsignal(sig) is signal.default_int_handler:
                 signal.signal(sig, _terminated)
     try:
         if args.command != "acquire":  # never in the way of a switch-off (acquire source off)

@@ -11,6 +11,8 @@ Python drops an exception raised while a finalizer runs ("Exception ignored in: 
 object registry is a ``WeakValueDictionary`` whose weak-reference callbacks run during every
 dataset write), and a signal's handler runs wherever the main thread is: a Ctrl-C landing there
 was lost, and the command went on to its end. :func:`redeliver` raises it again, a moment later.
+A stop that lands while a module is being imported waits for the import's end
+(:func:`after_import`): raised inside it, a library's bare ``except:`` swallowed it.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import functools
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 __all__ = [
@@ -29,6 +32,7 @@ __all__ = [
     "Interrupted",
     "exit_status",
     "redeliver",
+    "after_import",
     "raise_stop",
     "lost_stops_redelivered",
     "settle",
@@ -47,6 +51,12 @@ STOP_SIGNALS = tuple(
 #: How long after the drop a lost stop is raised again: long enough for the finalizer (and the
 #: hook) to have returned, where it would be dropped again, and short beside a person's patience.
 REDELIVER_AFTER_S = 0.05
+
+#: How often a stop that landed inside an import looks again whether the import is done, and how
+#: long it waits at most before it is raised inside it all the same (an import that hangs must
+#: not keep a command from stopping). Imports take milliseconds to a second (matplotlib's first).
+IMPORT_POLL_S = 0.01
+IMPORT_WAIT_S = 5.0
 
 
 class Interrupted(KeyboardInterrupt):
@@ -85,12 +95,12 @@ def exit_status(exc: BaseException) -> int:
 class _Redelivery:
     """A stop raised again from a timer thread, unless cancelled first."""
 
-    def __init__(self, signum: int):
+    def __init__(self, signum: int, after_s: float | None = None):
         self.signum = signum
         self._handler = _kernel_handler(signum)  # Python's: its handler raised the stop just now
         self._lock = threading.Lock()
         self._done = False  # fired or cancelled
-        timer = threading.Timer(REDELIVER_AFTER_S, self._fire)
+        timer = threading.Timer(REDELIVER_AFTER_S if after_s is None else after_s, self._fire)
         timer.daemon = True  # dies with the process
         timer.start()
 
@@ -159,6 +169,45 @@ def redeliver(exc: BaseException) -> _Redelivery | None:
     if not isinstance(exc, KeyboardInterrupt):
         return None
     return _Redelivery(signal_number(exc))
+
+
+#: a stop waiting for an import, by signal: when it came and when it last looked (monotonic s)
+_IMPORT_WAIT: dict[int, tuple[float, float]] = {}
+
+
+def after_import(signum: int, frame, pending: list | None = None) -> bool:
+    """In a stop signal's handler: True if the signal landed inside an import, and is delivered
+    again in :data:`IMPORT_POLL_S` (the handler then returns without raising); False if the
+    handler should act on it now.
+
+    Why: raised inside an import, a stop went to whatever the imported module's body was running,
+    and Cython-built modules run theirs inside a bare ``except:`` (their memoryview's
+    ``Sequence.register``): `radiokit demo`, interrupted as it first imported numpy.random, ran
+    to its end and exited 0; under the acquisition's guard the stop was lost the same way, the
+    guard stopping already, and the series went on. Inside a string ``exec`` (scipy's array-API
+    modules build themselves so) a ``KeyboardInterrupt`` also made ``python -m`` end by SIGINT
+    after the command's own handling. After :data:`IMPORT_WAIT_S` the stop is acted on anyway.
+
+    ``pending``: the list the pending delivery joins, so that a block that ends first raises it
+    (:func:`settle`); by default that of the innermost :func:`lost_stops_redelivered` block."""
+    inside = False
+    while frame is not None and not inside:
+        inside = frame.f_code.co_filename.startswith("<frozen importlib._bootstrap")
+        frame = frame.f_back
+    now = time.monotonic()
+    since, last = _IMPORT_WAIT.get(signum, (now, now))
+    if now - last > 100 * IMPORT_POLL_S:  # that wait ended (raised elsewhere): this is a new stop
+        since = now
+    if not inside or now - since > IMPORT_WAIT_S:
+        _IMPORT_WAIT.pop(signum, None)
+        return False
+    _IMPORT_WAIT[signum] = (since, now)
+    delivery = _Redelivery(signum, IMPORT_POLL_S)
+    if pending is None and _PENDING:
+        pending = _PENDING[-1]
+    if pending is not None:
+        pending.append(delivery)
+    return True
 
 
 def raise_stop(held: BaseException | None, error: BaseException | None = None) -> None:

@@ -1099,6 +1099,35 @@ def test_a_stop_delivered_again_wakes_a_wait_in_c():
     assert waited < wait_s / 2, waited
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_stop_inside_an_import_is_raised_once_the_import_is_done(sig, tmp_path, monkeypatch):
+    """A Ctrl-C (or ``kill``) that landed while a module was first imported was raised inside
+    the import, where a bare except of the library's (Cython's, at every Cython module's import)
+    swallowed it: `radiokit demo`, interrupted as it built its panel, ran to its end and exited 0.
+    The command line's handlers now let the import end, then raise the stop. The import and the
+    signal are real; the handlers are the command line's own."""
+    import importlib
+    import signal
+    import time
+
+    from radiokit.cli import _terminated
+    from radiokit.interrupts import Interrupted, lost_stops_redelivered
+
+    name = f"swallows_{sig.lower()}_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        f"import signal\ntry:\n    signal.raise_signal(signal.{sig})\n    x = sum(range(10))\n"
+        "except:  # noqa: E722\n    pass\nIMPORTED = True\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with _raising_on(getattr(signal, sig), _terminated), pytest.raises(Interrupted) as stop:
+        with lost_stops_redelivered():
+            module = importlib.import_module(name)
+            for _ in range(100):  # the stop, waiting for the import's end, lands here
+                time.sleep(0.01)
+    sys.modules.pop(name, None)
+    assert module.IMPORTED and stop.value.signum == getattr(signal, sig)
+
+
 _DELIVERED_AGAIN_TO = """
 import contextlib, ctypes, signal, sys, threading
 from radiokit.interrupts import REDELIVER_AFTER_S, Interrupted, deferred, exit_status, lost_stops_redelivered

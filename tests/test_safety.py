@@ -1103,6 +1103,49 @@ def test_a_stop_lost_in_a_finalizer_is_delivered_again():
             time.sleep(0.05)
 
 
+# A module whose import takes a signal and swallows what its handler raises, as Cython-built
+# modules do at import time (their memoryview's ``Sequence.register`` sits in a bare ``except:``;
+# seen: numpy.random._generator, first imported while `radiokit demo` built its panel).
+SWALLOWING_IMPORT = """
+import signal
+try:
+    signal.raise_signal(signal.{sig})  # the handler runs at the next bytecode, inside the try
+    x = sum(range(10))
+except:  # noqa: E722 -- the library's bare except, which is the point
+    pass
+IMPORTED = True
+"""
+
+
+def _swallowing_module(tmp_path, monkeypatch, sig="SIGINT"):
+    """The name of a new module (its file under ``tmp_path``) whose import swallows a signal."""
+    name = f"swallows_{tmp_path.name.replace('-', '_')}"
+    (tmp_path / f"{name}.py").write_text(SWALLOWING_IMPORT.format(sig=sig))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    return name
+
+
+def test_a_stop_inside_an_import_is_raised_once_the_import_is_done(tmp_path, monkeypatch):
+    """A Ctrl-C that landed while a module was first imported (the protocol's modules import
+    scipy and numpy.random lazily, mid-series) was raised inside the import, where a bare except
+    of the library's swallowed it; the guard, stopping already, then only said "please wait" at
+    every later signal while the series went on with the tube on. The stop now waits for the
+    import to end, then stops the run. The import and the signal are real."""
+    import importlib
+
+    from acquisition.guardian import SignalGuard, StopSignal
+
+    name = _swallowing_module(tmp_path, monkeypatch)
+    with SignalGuard() as guard:
+        with pytest.raises(StopSignal) as stop:
+            module = importlib.import_module(name)
+            for _ in range(100):  # the stop, waiting for the import's end, lands here
+                time.sleep(0.01)
+        assert module.IMPORTED and guard.stopping and stop.value.signum == signal.SIGINT
+        guard.cleanup()
+
+
 @pytest.mark.parametrize("switching_off", [False, True])
 def test_a_lost_stop_still_on_its_way_as_the_guard_ends_is_raised_there(switching_off, monkeypatch):
     """A stop lost in a finalizer is delivered again a moment later; a guarded block that ended
