@@ -3,6 +3,7 @@
 import contextlib
 import functools
 import importlib.util
+import re
 import types
 
 import numpy as np
@@ -3367,3 +3368,26 @@ def test_register_says_when_the_images_are_each_others_negative(tmp_path):
     write_tiff(tmp_path / "log2.tif", np.roll(L, 2, axis=1))
     res = run_cli("register", tmp_path / "log.tif", tmp_path / "log2.tif", "-o", tmp_path / "r2.h5", "-q")
     assert res.returncode == 0 and "negative" not in res.stdout, res.stdout
+
+
+@pytest.mark.parametrize("where", ["all", "patch", "one inf"])
+def test_a_non_finite_field_is_not_ok_and_says_so_first(where):
+    """A method whose field holds NaN or inf (a diverging solve) was flagged under reasons read off
+    the NaN: "diverged: residual complexity nan after > ... (and > nan, the noise's alone)", "the
+    registration left 460 % of the structure ...", min det J nan. It is not ok, the first reason
+    says what is wrong and how much, and the field returned (its non-finite pixels set to 0) is
+    what the other figures measure: every one finite."""
+    from radiokit.register import Quality, _assess
+
+    fixed, moving, truth = _edge_body(96, (0.0, 3.0))
+    d = truth.copy()
+    bad = {"all": (slice(None),) * 3, "patch": (slice(None), slice(40, 50), slice(40, 50)), "one inf": (1, 10, 10)}
+    d[bad[where]] = np.inf if where == "one inf" else np.nan
+    n_bad = int(np.count_nonzero(~np.isfinite(d).all(axis=0)))
+    reg = Registration(np.ascontiguousarray(d), "planted", Quality())
+    _assess(reg, fixed, moving, None, {}, 0.0)
+    q = reg.quality
+    assert not q.ok and q.reason.startswith(f"non-finite displacement: {n_bad} of {96 * 96} pixels"), q.reason
+    assert not re.search(r"\bnan\b", q.reason), q.reason  # Python's NaN, printed
+    assert np.isfinite(reg.displacement).all()
+    assert all(np.isfinite(v) for v in (q.rc_after, q.ncc_after, q.min_det_j)), q
