@@ -3391,3 +3391,28 @@ def test_a_non_finite_field_is_not_ok_and_says_so_first(where):
     assert not re.search(r"\bnan\b", q.reason), q.reason  # Python's NaN, printed
     assert np.isfinite(reg.displacement).all()
     assert all(np.isfinite(v) for v in (q.rc_after, q.ncc_after, q.min_det_j)), q
+
+
+def test_the_observed_share_leaves_out_the_pixels_the_field_carries_out_of_the_frame():
+    """``observed_fraction`` and ``interior_observed`` counted the pixels the field carries out of
+    the frame as observed, where the moving image holds nothing (the other checks leave them
+    out): a field carrying the whole body out still read the pair's observed share. Now they
+    count what the checks judge: none of it for that field, and for the true field of a body
+    shifted 12 px across the edge the zero field's share less the carried-out strip's."""
+    from radiokit.register import Quality, _assess, _carried_out, _pair_checks
+
+    fixed, moving, truth = _edge_body(96, (0.0, 12.0))
+
+    def judged(d):
+        reg = Registration(np.ascontiguousarray(d, np.float32), "planted", Quality())
+        _assess(reg, fixed, moving, None, {}, 0.0)
+        return reg.quality
+
+    p = _pair_checks(fixed, moving, None)
+    n_obj = p.ob.object.sum()
+    zero = judged(np.zeros_like(truth))
+    assert zero.observed_fraction == pytest.approx(p.obs.sum() / n_obj)
+    out = _carried_out(truth)
+    assert judged(truth).observed_fraction == pytest.approx((p.obs & ~out).sum() / n_obj)
+    gone = judged(truth + np.float32([0.0, 96.0])[:, None, None])
+    assert gone.observed_fraction == 0 and gone.interior_observed == 0, gone

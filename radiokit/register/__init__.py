@@ -81,7 +81,8 @@ class Quality:
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
     time (without this assessment). ``observed_fraction``: the share of the object (the mask, or
     the pixels that differ from the frame's border level) where the motion is observable
-    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``);
+    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``), less the pixels
+    the field carries out of the frame (the checks leave them out, :func:`_judged`);
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
     of the frame, inside its edge; the whole object when it is narrower);
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
@@ -903,9 +904,10 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
     q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
-    q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
-    q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
+    # what the field carries out of the frame is not observed: the moving image holds nothing there
     judged = obs if out is None else obs & ~out
+    q.observed_fraction = float(judged.sum() / n_obj) if n_obj else 0.0
+    q.interior_observed = float(judged[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, judged)
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)
