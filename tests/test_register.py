@@ -3111,14 +3111,15 @@ def test_a_mask_on_the_last_row_of_an_odd_frame_registers_binned(masked):
     a mask on its last row or column was cropped away before the thin-mask rule saw it, so no
     bin was left and rc divided by its zero pixel count (ZeroDivisionError). The cropped margin
     counts in the last bin: the motion along the textured line is observed, and a result the
-    checks trust is within their half pixel there."""
+    checks trust is within their half pixel there. (The map, not ``observed_fraction``: the true
+    field carries most of that line out of the frame, which the observed share leaves out.)"""
     n = 257
     fixed, moving, truth = _textured_pair(n)
     mask = np.zeros(fixed.shape, bool)
     mask[masked] = True
     reg = register(fixed, moving, mask=mask, preset="default", bin_pixels=n * n // 3)
     assert reg.options["binned"] == 2
-    assert reg.quality.observed_fraction > 0.5
+    assert np.mean(reg.confidence[mask] >= 0.5) > 0.5
     assert not reg.quality.ok or _epe(reg.displacement, truth, mask)[0] < 0.5, reg.quality.reason
 
 

@@ -922,7 +922,8 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
         if not waived:
             reasons.append(
                 f"motion observable in only {100 * q.interior_observed:.0f} % of the object's interior "
-                f"({100 * q.observed_fraction:.0f} % of the object; confidence map, noise {q.noise:.3g}) "
+                f"({100 * q.observed_fraction:.0f} % of the object; confidence map, noise {q.noise:.3g}"
+                f"{'' if out is None else ', less what the field carries out of the frame'}) "
                 f"and {_body_scale_text(q.body_scale, reg.options.get('preset'), q.affine_bound)}: elsewhere "
                 "the field is the regulariser's guess"
             )
