@@ -1342,3 +1342,31 @@ def test_calibrate_and_info_name_saturated_lines_apart_from_defect_lines(tmp_pat
     assert res.returncode == 0, res.stderr
     assert re.search(r"defect lines\s+rows \[\], columns \[30\]\n", res.stdout), res.stdout
     assert re.search(rf"saturated lines\s+columns {re.escape(str(clipped))} \(flats clipped", res.stdout), res.stdout
+
+
+def test_register_says_in_one_line_that_a_field_went_non_finite(tmp_path, monkeypatch):
+    """A method whose field holds NaN (a diverging solve; planted here in a flow peer) printed
+    "residual complexity ... -> nan" and a warning whose reasons were read off the NaN ("diverged:
+    residual complexity nan after ... > nan"). The warning's first reason names the non-finite
+    pixels, every figure printed is finite (the field written has them set to 0), exit 1."""
+    import tifffile
+
+    from radiokit.register import load_methods
+
+    def diverging(fixed, moving, mask):
+        d = np.zeros((2, *fixed.shape), np.float32)
+        d[:, 20:30, 20:30] = np.nan
+        return d, {}
+
+    monkeypatch.setitem(load_methods(), "tvl1", diverging)
+    rng = np.random.default_rng(0)
+    img = ndimage.gaussian_filter(rng.random((64, 64)), 2).astype(np.float32)
+    tifffile.imwrite(tmp_path / "f.tif", img)
+    tifffile.imwrite(tmp_path / "m.tif", np.roll(img, 1, axis=0))
+    res = run_cli("register", tmp_path / "f.tif", tmp_path / "m.tif", "--method", "tvl1", "-o", tmp_path / "r.h5")
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
+    warning = [ln for ln in res.stdout.splitlines() if ln.startswith("WARNING")]
+    assert len(warning) == 1 and warning[0].startswith("WARNING: not trustworthy: non-finite displacement: 100 of"), (
+        res.stdout
+    )
+    assert not re.search(r"\bnan\b", res.stdout), res.stdout

@@ -81,7 +81,8 @@ class Quality:
     resolution, inside the mask); ``min_det_j``. ``iterations``; ``seconds``: the method's own
     time (without this assessment). ``observed_fraction``: the share of the object (the mask, or
     the pixels that differ from the frame's border level) where the motion is observable
-    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``);
+    (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``), less the pixels
+    the field carries out of the frame (the checks leave them out, :func:`_judged`);
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
     of the frame, inside its edge; the whole object when it is narrower);
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
@@ -614,17 +615,18 @@ def _assess(reg, f, m, mask, info, seconds):
     to at most ~0.4 Mpx (these are diagnostics, and a fraction of the full-resolution cost; the
     field itself is not binned); det J at full resolution."""
     q = reg.quality
+    reasons = _non_finite(reg)
     p = _pair_checks(f, m, mask)
     k = p.k
     if k > 1:
         db = _bin(reg.displacement, k) / np.float32(k)
-        w = _warp(p.m, _field(db))  # judged below: a non-finite field is one of its reasons
+        w = _warp(p.m, _field(db))
     else:
         w = _warp(m, _field(reg.displacement))
         db = reg.displacement
     q.ncc_before = p.ncc_before
     q.ncc_after = ncc(w, p.f, p.mask)  # a report, not a check: the whole warped image
-    w, out = _judged(p, w, np.nan_to_num(db))
+    w, out = _judged(p, w, db)
     # the residual before over the same pixels: a strip the field carries out is not "removed"
     q.rc_before = p.rc_before if out is None else residual_complexity(np.where(out, 0, p.m - p.f) * p.unit, p.mask)
     q.rc_after = residual_complexity((w - p.f) * p.unit, p.mask)
@@ -637,11 +639,9 @@ def _assess(reg, f, m, mask, info, seconds):
     q.converged = bool(info.get("converged", True))
     q.seconds = seconds
     memo = _memo_of(f, m, mask)
-    reasons, n_object = _observed(reg, p, np.nan_to_num(w), np.nan_to_num(db), 1.0 if memo is None else memo.scale, out)
+    observed, n_object = _observed(reg, p, w, db, 1.0 if memo is None else memo.scale, out)
+    reasons += observed
     n_object = mask.sum() if mask is not None else n_object * k * k  # full-resolution pixels
-    if not np.all(np.isfinite(reg.displacement)):
-        reasons.append("non-finite displacement")
-        reg.displacement = np.nan_to_num(reg.displacement, nan=0.0, posinf=0.0, neginf=0.0)
     if q.folds > _MAX_FOLDS * max(int(n_object), 1):
         reasons.append(f"folding: {q.folds} pixels with det J <= 0 (min {q.min_det_j:.3g})")
     diverged = _diverged(q, p, db, k)
@@ -656,6 +656,21 @@ def _assess(reg, f, m, mask, info, seconds):
         reasons.append(info.get("message", "did not converge"))
     q.ok = not reasons
     q.reason = "; ".join(reasons)
+
+
+def _non_finite(reg) -> list:
+    """The reason (a list of at most one) for a field with NaN or inf pixels (a diverging solve),
+    whose non-finite pixels are set to 0 in ``reg.displacement``: the field returned, which the
+    other checks then measure. Measured on the NaN field itself, they read "residual complexity
+    nan after", "460 % of the structure left" and the like, reasons that hid this one."""
+    bad = ~np.isfinite(reg.displacement).all(axis=0)
+    if not bad.any():
+        return []
+    reg.displacement = np.where(bad, np.float32(0), reg.displacement).astype(np.float32)
+    return [
+        f"non-finite displacement: {int(bad.sum())} of {bad.size} pixels NaN or inf (the method diverged; "
+        "set to 0 in the field returned)"
+    ]
 
 
 def _slow_not_lost(info, q, k) -> bool:
@@ -889,9 +904,10 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
     q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
-    q.observed_fraction = float(obs.sum() / n_obj) if n_obj else 0.0
-    q.interior_observed = float(obs[inner].mean()) if inner.any() else q.observed_fraction
+    # what the field carries out of the frame is not observed: the moving image holds nothing there
     judged = obs if out is None else obs & ~out
+    q.observed_fraction = float(judged.sum() / n_obj) if n_obj else 0.0
+    q.interior_observed = float(judged[inner].mean()) if inner.any() else q.observed_fraction
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, judged)
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)
@@ -906,7 +922,8 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
         if not waived:
             reasons.append(
                 f"motion observable in only {100 * q.interior_observed:.0f} % of the object's interior "
-                f"({100 * q.observed_fraction:.0f} % of the object; confidence map, noise {q.noise:.3g}) "
+                f"({100 * q.observed_fraction:.0f} % of the object; confidence map, noise {q.noise:.3g}"
+                f"{'' if out is None else ', less what the field carries out of the frame'}) "
                 f"and {_body_scale_text(q.body_scale, reg.options.get('preset'), q.affine_bound)}: elsewhere "
                 "the field is the regulariser's guess"
             )
