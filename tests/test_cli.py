@@ -1128,6 +1128,78 @@ def test_a_stop_inside_an_import_is_raised_once_the_import_is_done(sig, tmp_path
     assert module.IMPORTED and stop.value.signum == getattr(signal, sig)
 
 
+def test_a_second_stop_inside_an_import_joins_the_first(tmp_path, monkeypatch):
+    """Ctrl-C, then ``kill`` (or a closed terminal) while the first stop waited for an import's
+    end: each waited on its own, and the second was raised 10 ms after the first, into the
+    command's clean-up (which it cut short, leaving its temporary), and its exit status replaced
+    the first's (143 for a Ctrl-C). A stop that comes while another waits now joins it. The import
+    and the signals are real; the handlers are the command line's own."""
+    import importlib
+    import signal
+    import time
+
+    from radiokit.cli import _terminated
+    from radiokit.interrupts import IMPORT_POLL_S, Interrupted, lost_stops_redelivered
+
+    name = f"two_stops_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        "import signal\ntry:\n    signal.raise_signal(signal.SIGINT)\n    x = sum(range(10))\n"
+        "    signal.raise_signal(signal.SIGTERM)\n    x = sum(range(10))\nexcept:  # noqa: E722\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cleaned = False
+    with _raising_on(signal.SIGINT, _terminated), _raising_on(signal.SIGTERM, _terminated):
+        with pytest.raises(Interrupted) as stop, lost_stops_redelivered():
+            try:
+                importlib.import_module(name)
+                for _ in range(100):  # the stop, waiting for the import's end, lands here
+                    time.sleep(0.01)
+            finally:  # the command's clean-up, ten of the wait's polls long
+                deadline = time.monotonic() + 10 * IMPORT_POLL_S
+                while time.monotonic() < deadline:
+                    pass
+                cleaned = True
+    sys.modules.pop(name, None)
+    assert cleaned and stop.value.signum == signal.SIGINT
+
+
+def test_a_stop_inside_an_import_waits_no_longer_than_its_cap(tmp_path, monkeypatch):
+    """The wait for an import's end is capped (an import that hangs must not keep a command from
+    stopping), but the cap counted from the last time the handler ran, if that was over 100
+    polls before: an import whose body ran C calls of over a second each (no bytecode, so no
+    handler, in between) restarted the wait at each, and a stop waited for the whole import
+    (10.7 s for a 5 s cap: 8 calls of 1.3 s). Here with the cap and the poll scaled down (0.5 s,
+    1 ms) and 6 calls of 0.2 s: the stop must come inside the import, about its third call."""
+    import hashlib
+    import importlib
+    import signal
+    import time
+
+    import radiokit.interrupts as interrupts
+    from radiokit.cli import _terminated
+
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.5)
+    monkeypatch.setattr(interrupts, "IMPORT_POLL_S", 0.001)
+    t0 = time.perf_counter()
+    hashlib.pbkdf2_hmac("sha256", b"x", b"y", 20_000)
+    rounds = int(20_000 * 0.2 / (time.perf_counter() - t0))  # a call of 0.2 s
+    name = f"slow_c_calls_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        f"import hashlib, signal\nsignal.raise_signal(signal.SIGINT)\nfor _ in range(6):\n"
+        f"    hashlib.pbkdf2_hmac('sha256', b'x', b'y', {rounds})\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    imported = False
+    with _raising_on(signal.SIGINT, _terminated), pytest.raises(interrupts.Interrupted):
+        with interrupts.lost_stops_redelivered():
+            importlib.import_module(name)
+            imported = True
+            for _ in range(100):
+                time.sleep(0.01)
+    sys.modules.pop(name, None)
+    assert not imported
+
+
 _DELIVERED_AGAIN_TO = """
 import contextlib, ctypes, signal, sys, threading
 from radiokit.interrupts import REDELIVER_AFTER_S, Interrupted, deferred, exit_status, lost_stops_redelivered
