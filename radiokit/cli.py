@@ -17,10 +17,11 @@ import os
 import signal
 import sys
 import warnings
-from importlib.metadata import entry_points
 from pathlib import Path
 
 try:  # the second the imports take: Ctrl-C there printed an import's traceback (review s38b)
+    from importlib.metadata import entry_points  # 0.18 s of them (email, socket, ...)
+
     import numpy as np
 
     from radiokit import __version__
