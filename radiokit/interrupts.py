@@ -113,9 +113,11 @@ class _Redelivery:
                     self.fired_at = time.monotonic()
 
     def waiting(self) -> bool:
-        """Neither delivered nor cancelled, and its timer still to run."""
-        with self._lock:
-            return not self._done and self._timer.is_alive()
+        """Neither delivered nor cancelled, and its timer still to run. Read without the lock: a
+        signal handler asks, and a second handler that ran inside the first (at ``is_alive``'s
+        first bytecode) would wait for it forever. Read as ``_fire`` sends, it says waiting,
+        and the delivery that follows is handled as the wait's own."""
+        return not self._done and self._timer.is_alive()
 
     def cancel(self) -> bool:
         """Keep it from firing; True if it had not fired, or could not be delivered (the stop is
