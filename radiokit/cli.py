@@ -17,10 +17,11 @@ import os
 import signal
 import sys
 import warnings
-from importlib.metadata import entry_points
 from pathlib import Path
 
 try:  # the second the imports take: Ctrl-C there printed an import's traceback (review s38b)
+    from importlib.metadata import entry_points  # 0.18 s of them (email, socket, ...)
+
     import numpy as np
 
     from radiokit import __version__
@@ -1741,17 +1742,33 @@ def _one_warning_per_file() -> None:
     warnings.showwarning = once
 
 
-def _main(argv) -> int:
-    from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
+def _take_signals(command: str, signals) -> None:
+    """The command line's handler (:func:`_terminated`) for the stop ``signals``. Ctrl-C's in
+    place of Python's own, which raised inside an import; one the command was started ignoring
+    (`cmd &` in a script) stays ignored. ``acquire`` owns the others (the tube goes off first, by
+    its guard's; before the guard, nothing is sent or written), but takes Ctrl-C's too: raised
+    before its guard, inside h5py's imports, it was swallowed and the series went on."""
+    for sig in signals:
+        if sig == signal.SIGINT:
+            take = signal.getsignal(sig) is signal.default_int_handler
+        else:
+            take = command != "acquire"  # the demo's runs take them over
+        if take:
+            signal.signal(sig, _terminated)
 
+
+def _main(argv) -> int:
     try:
         # a command's own module (acquire's: the X-ray driver) is imported as the parser is built:
-        # a stop here is one line too, nothing opened yet (the command's handlers come later)
+        # a stop here is one line too, nothing opened yet (the command's handlers come later);
+        # so is one while this first import runs (a traceback and death by SIGINT, before)
+        from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
+
         parser = build_parser()
         args = parser.parse_args(argv)
     except KeyboardInterrupt as exc:
         print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
-        return exit_status(exc)
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))  # Python's own Ctrl-C, unless a caller's handler
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -1765,12 +1782,7 @@ def _main(argv) -> int:
         )
     _one_warning_per_file()
     _quiet_matplotlib()
-    if args.command != "acquire":  # it owns its signals (the tube goes off first); the demo's runs take them over
-        for sig in STOP_SIGNALS:
-            # Ctrl-C too, in place of Python's own (which raised inside an import, see _terminated);
-            # one the command was started ignoring (`cmd &` in a script) stays ignored
-            if sig != signal.SIGINT or signal.getsignal(sig) is signal.default_int_handler:
-                signal.signal(sig, _terminated)
+    _take_signals(args.command, STOP_SIGNALS)
     try:
         if args.command != "acquire":  # never in the way of a switch-off (acquire source off)
             _check_environment()

@@ -100,14 +100,24 @@ class _Redelivery:
         self._handler = _kernel_handler(signum)  # Python's: its handler raised the stop just now
         self._lock = threading.Lock()
         self._done = False  # fired or cancelled
-        timer = threading.Timer(REDELIVER_AFTER_S if after_s is None else after_s, self._fire)
-        timer.daemon = True  # dies with the process
-        timer.start()
+        self.fired_at: float | None = None  # when it was delivered (monotonic s)
+        self._timer = threading.Timer(REDELIVER_AFTER_S if after_s is None else after_s, self._fire)
+        self._timer.daemon = True  # dies with the process
+        self._timer.start()
 
     def _fire(self) -> None:
         with self._lock:  # held while it sends: cancel() then knows the stop is on its way
             if not self._done:
                 self._done = _deliver(self.signum, self._handler)
+                if self._done:
+                    self.fired_at = time.monotonic()
+
+    def waiting(self) -> bool:
+        """Neither delivered nor cancelled, and its timer still to run. Read without the lock: a
+        signal handler asks, and a second handler that ran inside the first (at ``is_alive``'s
+        first bytecode) would wait for it forever. Read as ``_fire`` sends, it says waiting,
+        and the delivery that follows is handled as the wait's own."""
+        return not self._done and self._timer.is_alive()
 
     def cancel(self) -> bool:
         """Keep it from firing; True if it had not fired, or could not be delivered (the stop is
@@ -171,8 +181,8 @@ def redeliver(exc: BaseException) -> _Redelivery | None:
     return _Redelivery(signal_number(exc))
 
 
-#: a stop waiting for an import, by signal: when it came and when it last looked (monotonic s)
-_IMPORT_WAIT: dict[int, tuple[float, float]] = {}
+#: the stop waiting for an import's end, if one is: when it came (monotonic s), and its delivery
+_IMPORT_WAIT: dict[str, tuple[float, _Redelivery]] = {}
 
 
 def after_import(signum: int, frame, pending: list | None = None) -> bool:
@@ -188,6 +198,11 @@ def after_import(signum: int, frame, pending: list | None = None) -> bool:
     modules build themselves so) a ``KeyboardInterrupt`` also made ``python -m`` end by SIGINT
     after the command's own handling. After :data:`IMPORT_WAIT_S` the stop is acted on anyway.
 
+    One stop waits at a time: another that comes meanwhile (Ctrl-C, then ``kill``) joins it; each
+    waiting on its own, the second was raised a poll after the first, into the command's
+    clean-up, and its exit status replaced the first's. The wait is counted from the first
+    stop's coming, however long the import's C calls keep the handler from running.
+
     ``pending``: the list the pending delivery joins, so that a block that ends first raises it
     (:func:`settle`); by default that of the innermost :func:`lost_stops_redelivered` block."""
     inside = False
@@ -195,19 +210,30 @@ def after_import(signum: int, frame, pending: list | None = None) -> bool:
         inside = frame.f_code.co_filename.startswith("<frozen importlib._bootstrap")
         frame = frame.f_back
     now = time.monotonic()
-    since, last = _IMPORT_WAIT.get(signum, (now, now))
-    if now - last > 100 * IMPORT_POLL_S:  # that wait ended (raised elsewhere): this is a new stop
-        since = now
+    since, delivery = _IMPORT_WAIT.get("stop", (now, None))
+    if delivery is not None and not delivery.waiting() and not _delivered_lately(delivery, now):
+        since = now  # that wait is over (its block raised it, or it went elsewhere): this is a new stop
     if not inside or now - since > IMPORT_WAIT_S:
-        _IMPORT_WAIT.pop(signum, None)
+        _IMPORT_WAIT.clear()
+        if delivery is not None:
+            delivery.cancel()  # a stop that joined the wait is this one: raised once, not twice
         return False
-    _IMPORT_WAIT[signum] = (since, now)
+    if delivery is not None and delivery.waiting():
+        return True  # a stop comes while one waits: it joins that one
     delivery = _Redelivery(signum, IMPORT_POLL_S)
+    _IMPORT_WAIT["stop"] = (since, delivery)
     if pending is None and _PENDING:
         pending = _PENDING[-1]
     if pending is not None:
         pending.append(delivery)
     return True
+
+
+def _delivered_lately(delivery: _Redelivery, now: float) -> bool:
+    """Whether ``delivery`` went out lately: the handler running now is then its own, late by the
+    C call it waited for (counted as long as twice the cap: one longer than the cap finds the
+    stop due). Later, it went to another handler meanwhile, and that wait is over."""
+    return delivery.fired_at is not None and now - delivery.fired_at <= 2 * IMPORT_WAIT_S
 
 
 def raise_stop(held: BaseException | None, error: BaseException | None = None) -> None:

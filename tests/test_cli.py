@@ -1128,6 +1128,136 @@ def test_a_stop_inside_an_import_is_raised_once_the_import_is_done(sig, tmp_path
     assert module.IMPORTED and stop.value.signum == getattr(signal, sig)
 
 
+def test_a_second_stop_inside_an_import_joins_the_first(tmp_path, monkeypatch):
+    """Ctrl-C, then ``kill`` (or a closed terminal) while the first stop waited for an import's
+    end: each waited on its own, and the second was raised 10 ms after the first, into the
+    command's clean-up (which it cut short, leaving its temporary), and its exit status replaced
+    the first's (143 for a Ctrl-C). A stop that comes while another waits now joins it. The import
+    and the signals are real; the handlers are the command line's own."""
+    import importlib
+    import signal
+    import time
+
+    from radiokit.cli import _terminated
+    from radiokit.interrupts import IMPORT_POLL_S, Interrupted, lost_stops_redelivered
+
+    name = f"two_stops_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        "import signal\ntry:\n    signal.raise_signal(signal.SIGINT)\n    x = sum(range(10))\n"
+        "    signal.raise_signal(signal.SIGTERM)\n    x = sum(range(10))\nexcept:  # noqa: E722\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cleaned = False
+    with _raising_on(signal.SIGINT, _terminated), _raising_on(signal.SIGTERM, _terminated):
+        with pytest.raises(Interrupted) as stop, lost_stops_redelivered():
+            try:
+                importlib.import_module(name)
+                for _ in range(100):  # the stop, waiting for the import's end, lands here
+                    time.sleep(0.01)
+            finally:  # the command's clean-up, ten of the wait's polls long
+                deadline = time.monotonic() + 10 * IMPORT_POLL_S
+                while time.monotonic() < deadline:
+                    pass
+                cleaned = True
+    sys.modules.pop(name, None)
+    assert cleaned and stop.value.signum == signal.SIGINT
+
+
+def test_a_stop_inside_an_import_waits_no_longer_than_its_cap(tmp_path, monkeypatch):
+    """The wait for an import's end is capped (an import that hangs must not keep a command from
+    stopping), but the cap counted from the last time the handler ran, if that was over 100
+    polls before: an import whose body ran C calls of over a second each (no bytecode, so no
+    handler, in between) restarted the wait at each, and a stop waited for the whole import
+    (10.7 s for a 5 s cap: 8 calls of 1.3 s). Here with the cap and the poll scaled down (0.5 s,
+    1 ms) and 6 calls of 0.2 s: the stop must come inside the import, about its third call."""
+    import hashlib
+    import importlib
+    import signal
+    import time
+
+    import radiokit.interrupts as interrupts
+    from radiokit.cli import _terminated
+
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.5)
+    monkeypatch.setattr(interrupts, "IMPORT_POLL_S", 0.001)
+    t0 = time.perf_counter()
+    hashlib.pbkdf2_hmac("sha256", b"x", b"y", 20_000)
+    rounds = int(20_000 * 0.2 / (time.perf_counter() - t0))  # a call of 0.2 s
+    name = f"slow_c_calls_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        f"import hashlib, signal\nsignal.raise_signal(signal.SIGINT)\nfor _ in range(6):\n"
+        f"    hashlib.pbkdf2_hmac('sha256', b'x', b'y', {rounds})\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    imported = False
+    with _raising_on(signal.SIGINT, _terminated), pytest.raises(interrupts.Interrupted):
+        with interrupts.lost_stops_redelivered():
+            importlib.import_module(name)
+            imported = True
+            for _ in range(100):
+                time.sleep(0.01)
+    sys.modules.pop(name, None)
+    assert not imported
+
+
+def test_a_ctrl_c_inside_an_import_before_the_acquisitions_guard_stops_it(tmp_path, monkeypatch):
+    """`radiokit acquire` kept Python's own Ctrl-C until its X-ray guard was entered, 0.6 s of
+    imports later (h5py's 26 Cython modules among them): a Ctrl-C raised inside one went to its
+    bare except, and the series went on to switch X-rays on; inside a dataclass's or a
+    namedtuple's string exec it made ``python -m`` end by SIGINT after the command's own line (2 of
+    80 runs with a Ctrl-C 0.15-0.8 s in). Its Ctrl-C now waits for the import's end, as every other
+    command's. The command's work is replaced by the import; the import and the signal are real."""
+    import importlib
+    import signal
+    import time
+
+    import acquisition.cli
+    from radiokit.cli import main
+
+    name = f"swallows_before_the_guard_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(
+        "import signal\ntry:\n    signal.raise_signal(signal.SIGINT)\n    x = sum(range(10))\n"
+        "except:  # noqa: E722\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def run(args):
+        importlib.import_module(name)
+        for _ in range(100):  # the stop, waiting for the import's end, lands here
+            time.sleep(0.01)
+        return 0
+
+    monkeypatch.setattr(acquisition.cli, "_run", run)
+    with _raising_on(signal.SIGINT, signal.default_int_handler):  # a terminal's Ctrl-C
+        code = main(["acquire", str(tmp_path / "protocol.toml")])
+    sys.modules.pop(name, None)
+    assert code == 128 + signal.SIGINT
+
+
+@pytest.mark.parametrize("module", ["radiokit.interrupts", "importlib.metadata"])
+def test_a_ctrl_c_as_the_command_line_starts_is_one_line(module):
+    """Two imports of the command line's sat outside the blocks that say "interrupted while
+    starting": its signal handling (ctypes' first, 10-30 ms on a loaded machine), and
+    importlib.metadata (0.18 s: email, socket, ...). A Ctrl-C landing in either ended in a
+    traceback and death by SIGINT (4 of 80 runs of `acquire` with a Ctrl-C 0.15-0.8 s in). The
+    Ctrl-C is real, raised as that module is looked for."""
+    script = (
+        "import signal, sys\n"
+        "class Finder:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            signal.raise_signal(signal.SIGINT)\n"
+        "sys.meta_path.insert(0, Finder())\n"
+        "from radiokit.cli import main\n"
+        "sys.exit(main(['info', 'x.tif']))\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 130 and "Traceback" not in res.stderr, (res.returncode, res.stderr)
+    assert res.stderr.strip().splitlines() == [
+        "radiokit: interrupted while starting: nothing was read, sent or written"
+    ]
+
+
 _DELIVERED_AGAIN_TO = """
 import contextlib, ctypes, signal, sys, threading
 from radiokit.interrupts import REDELIVER_AFTER_S, Interrupted, deferred, exit_status, lost_stops_redelivered
