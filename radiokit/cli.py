@@ -1745,11 +1745,15 @@ def _one_warning_per_file() -> None:
 def _take_signals(command: str, signals) -> None:
     """The command line's handler (:func:`_terminated`) for the stop ``signals``. Ctrl-C's in
     place of Python's own, which raised inside an import; one the command was started ignoring
-    (`cmd &` in a script) stays ignored. ``acquire`` owns the others (the tube goes off first, by
-    its guard's; before the guard, nothing is sent or written), but takes Ctrl-C's too: raised
-    before its guard, inside h5py's imports, it was swallowed and the series went on."""
+    stays ignored (`cmd &` in a script ignores Ctrl-C; `nohup cmd` a hang-up, so that it outlives
+    the terminal: taken, closing the terminal stopped it). ``acquire`` owns the others (the tube
+    goes off first, by its guard's; before the guard, nothing is sent or written), but takes
+    Ctrl-C's too: raised before its guard, inside h5py's imports, it was swallowed and the series
+    went on."""
     for sig in signals:
-        if sig == signal.SIGINT:
+        if signal.getsignal(sig) is signal.SIG_IGN:
+            take = False
+        elif sig == signal.SIGINT:
             take = signal.getsignal(sig) is signal.default_int_handler
         else:
             take = command != "acquire"  # the demo's runs take them over

@@ -1099,6 +1099,30 @@ def test_a_stop_delivered_again_wakes_a_wait_in_c():
     assert waited < wait_s / 2, waited
 
 
+@pytest.mark.parametrize("sig", ["SIGHUP", "SIGTERM", "SIGQUIT", "SIGINT"])
+def test_a_stop_signal_the_command_was_started_ignoring_stays_ignored(sig):
+    """`nohup radiokit process ... &` starts the command with SIGHUP ignored so that it outlives
+    the terminal; the command put its own handler in its place, and closing the terminal stopped
+    it. A signal inherited ignored stays ignored (Ctrl-C's was already); one at its default is
+    taken. (The acquisition's guard takes them all while X-rays may be on: stopped, the tube
+    goes off.)"""
+    import signal
+
+    from radiokit.cli import _take_signals, _terminated
+
+    signum = getattr(signal, sig)
+    before = signal.signal(signum, signal.SIG_IGN)
+    try:
+        _take_signals("process", [signum])
+        assert signal.getsignal(signum) is signal.SIG_IGN
+        if signum != signal.SIGINT:  # Ctrl-C's is taken in place of Python's own handler only
+            signal.signal(signum, signal.SIG_DFL)
+            _take_signals("process", [signum])
+            assert signal.getsignal(signum) is _terminated
+    finally:
+        signal.signal(signum, before)
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_a_stop_inside_an_import_is_raised_once_the_import_is_done(sig, tmp_path, monkeypatch):
     """A Ctrl-C (or ``kill``) that landed while a module was first imported was raised inside

@@ -619,11 +619,12 @@ def _kill_when(proc, pattern_dir: Path, glob: str, timeout=120.0, sig=signal.SIG
 
 
 def _as_from_a_terminal():
-    """A command's child starts with SIGINT and SIGHUP as a terminal gives them (their default
-    actions): under ``make test &`` the suite inherits them ignored, a run keeps a signal it was
-    started ignoring ignored (radiokit.interrupts.deferred), and a test's Ctrl-C went nowhere."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    """A command's child starts with SIGINT, SIGQUIT and SIGHUP as a terminal gives them (their
+    default actions): under ``make test &`` the suite inherits the first two ignored (under
+    ``nohup`` the last), a run keeps a signal it was started ignoring ignored (radiokit.cli's
+    ``_take_signals``, radiokit.interrupts.deferred), and a test's Ctrl-C went nowhere."""
+    for sig in (signal.SIGINT, signal.SIGQUIT, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
 
 
 def _process_from_a_terminal(a, b, out, workers):
