@@ -382,6 +382,8 @@ def _series(guard, args, p) -> int:
             _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
         elif r is not None and getattr(r, "file_lost", False):
             _say(f"\nstopped by {name} in phase {r.phase}; {_lost(r)}")
+        elif r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
+            _say(f"\nstopped by {name} in phase {r.phase}; no file was made; the same command starts the series")
         else:
             _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
         return _finish(r, 128 + getattr(exc, "signum", 2))

@@ -1734,6 +1734,32 @@ def test_cli_an_overwrite_stopped_in_the_warm_up_says_the_previous_series_is_unc
     assert out.read_bytes() == before and _beside(out) == []
 
 
+def test_cli_stopped_while_connecting_does_not_offer_a_file_it_never_made(tmp_path, scene_toml, capsys, sigint_default):
+    """Ctrl-C while the run still talked to the controller, before its file was made: the line
+    said "0 frames saved in series.h5; `... --resume` completes it" (review s48rv1: 7 of 30
+    runs), a file that is not there and a resume that refuses to start. The commands spaced
+    0.3 s apart keep the run in its connect phase long enough to be stopped there."""
+    p = protocol(tmp_path, scene_toml, link_s=0.3)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out, notebook = Path(p.output), Path(p.output).with_suffix(".log")
+
+    def ctrl_c_at_the_first_command():
+        for _ in range(600):
+            if notebook.exists() and "> " in notebook.read_text(errors="replace"):
+                break
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c_at_the_first_command)
+    t.start()
+    code = _cli("acquire", str(path), "--sim", "-q")
+    t.join()
+    err = capsys.readouterr().err
+    assert code == 130 and "in phase connect" in err, err
+    assert not out.exists() and "--resume" not in err and "frames saved" not in err, err
+
+
 def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml, capsys):
     """A series an --overwrite set aside (the run killed before its first frame) is put back by
     the next run, which says so; the dry run promises to touch nothing, so it says what the run
