@@ -674,6 +674,27 @@ def _cli(*args):
     return main(list(args))
 
 
+def _cli_stopped_when(capsys, notebook: Path, said: str, *args, poll_s=0.05, after_s=0.0) -> tuple[int, str]:
+    """``radiokit ARGS`` run in this process, a Ctrl-C sent to it ``after_s`` after its notebook
+    first matches ``said`` (a regular expression; looked at every ``poll_s``, for 30 s at most):
+    (exit code, stderr)."""
+
+    def ctrl_c():
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end:
+            if notebook.exists() and re.search(said, notebook.read_text(errors="replace")):
+                break
+            time.sleep(poll_s)
+        time.sleep(after_s)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    t = threading.Thread(target=ctrl_c)
+    t.start()
+    code = _cli(*args)
+    t.join()
+    return code, capsys.readouterr().err
+
+
 def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, capsys):
     p = protocol(tmp_path, scene_toml, settle_s=60.0)
     path = tmp_path / "protocol.toml"
@@ -929,18 +950,9 @@ def test_cli_the_resume_hint_after_ctrl_c_completes_this_file_and_a_complete_fil
     out = tmp_path / "int acq.h5"  # a space: the hint is quoted for the shell
     notebook = out.with_suffix(".log")
 
-    def ctrl_c_after_two_frames():
-        for _ in range(600):
-            if notebook.exists() and "frame 1 written" in notebook.read_text(errors="replace"):
-                break
-            time.sleep(0.05)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    t = threading.Thread(target=ctrl_c_after_two_frames)
-    t.start()
-    code = _cli("acquire", str(path), "--sim", "-q", "-o", str(out), "--dialect", "B")
-    t.join()
-    err = capsys.readouterr().err
+    code, err = _cli_stopped_when(
+        capsys, notebook, "frame 1 written", "acquire", str(path), "--sim", "-q", "-o", str(out), "--dialect", "B"
+    )
     assert code == 130, err
     hint = re.search(r"`(radiokit acquire [^`]*)` completes it", err)
     assert hint, err
@@ -1715,19 +1727,9 @@ def test_cli_an_overwrite_stopped_in_the_warm_up_says_the_previous_series_is_unc
     holds the previous series, which that resume would have gone on with."""
     path, out, before, notebook = _cold_protocol_over_an_old_series(tmp_path, tmp_path, scene_toml)
 
-    def ctrl_c_in_the_warm_up():
-        for _ in range(600):
-            if notebook.exists() and re.search(r"> (STS 1|WUP|XON)", notebook.read_text(errors="replace")):
-                break
-            time.sleep(0.05)
-        time.sleep(0.2)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    t = threading.Thread(target=ctrl_c_in_the_warm_up)
-    t.start()
-    code = _cli("acquire", str(path), "--sim", "-q", "--overwrite")
-    t.join()
-    err = capsys.readouterr().err
+    code, err = _cli_stopped_when(
+        capsys, notebook, r"> (STS 1|WUP|XON)", "acquire", str(path), "--sim", "-q", "--overwrite", after_s=0.2
+    )
     assert code == 130, err
     assert f"no frame taken: {out} holds the previous series, unchanged" in err, err
     assert "--resume" not in err, err
@@ -1744,18 +1746,7 @@ def test_cli_stopped_while_connecting_does_not_offer_a_file_it_never_made(tmp_pa
     path.write_text(p.to_toml())
     out, notebook = Path(p.output), Path(p.output).with_suffix(".log")
 
-    def ctrl_c_at_the_first_command():
-        for _ in range(600):
-            if notebook.exists() and "> " in notebook.read_text(errors="replace"):
-                break
-            time.sleep(0.01)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    t = threading.Thread(target=ctrl_c_at_the_first_command)
-    t.start()
-    code = _cli("acquire", str(path), "--sim", "-q")
-    t.join()
-    err = capsys.readouterr().err
+    code, err = _cli_stopped_when(capsys, notebook, "> ", "acquire", str(path), "--sim", "-q", poll_s=0.01)
     assert code == 130 and "in phase connect" in err, err
     assert not out.exists() and "--resume" not in err and "frames saved" not in err, err
 
