@@ -1954,3 +1954,34 @@ def test_a_failed_source_ons_line_says_a_confirmed_switch_off_once():
     assert line.startswith(f"{server.url}: beam not stable within") and not model.xray_on, line
     assert line.count("X-rays") == 1 and line.endswith("; X-rays switched off, confirmed by STS: STANDBY"), line
     assert err.tube_said
+
+
+def test_a_resume_stopped_while_connecting_counts_the_frames_the_file_holds(
+    tmp_path, scene_toml, bench, sigint_default
+):
+    """A `--resume` stopped before it had reopened the file (Ctrl-C while connecting) said "0
+    frames saved in series.h5; `... --resume` completes it" of a file holding 3 (review s48rv2):
+    an operator told the file is empty may well delete it. The count is the file's."""
+    from radiokit.io import read_progress
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    out = Path(p.output)
+
+    def stop_at(phase_or_frame):
+        seen = []
+
+        def hook(phase, info=None):
+            seen.append(phase)
+            if phase == phase_or_frame and (phase != "frame" or seen.count("frame") == 3):
+                signal.raise_signal(signal.SIGINT)
+
+        return hook
+
+    with pytest.raises(KeyboardInterrupt):
+        run(p, devices=sim_devices(p, bench=bench), progress=False, on_phase=stop_at("frame"))
+    held = read_progress(out).frames_complete
+    assert held >= 3
+    with pytest.raises(KeyboardInterrupt) as info:
+        run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True, on_phase=stop_at("connect"))
+    assert info.value.result.phase == "connect"
+    assert info.value.result.frames_total == held == read_progress(out).frames_complete

@@ -1619,7 +1619,9 @@ def run(
     hold = _hold_source_port(p, sim=sim, devices=devices)
     try:
         notebook = _open_notebook(out)
-        res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
+        # a resume stopped before it reopens the file (while connecting) still holds the file's
+        # frames: "0 frames saved" of a file holding them invited its deletion (review s48rv2)
+        res = Result(str(out), 0, _frames_in(out) if resume else 0, 0.0, 0.0, "connect", resumed=bool(resume))
         bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
         r = _Run(
             p,
@@ -1681,6 +1683,13 @@ def _hold_source_port(p: Protocol, *, sim, devices):
     from acquisition.transport import hold_port
 
     return hold_port(port)
+
+
+def _frames_in(out: Path) -> int:
+    """The complete frames of the experiment file ``out`` (a resume's, checked by _existing)."""
+    from radiokit.io import read_progress
+
+    return int(read_progress(out).frames_complete)
 
 
 def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
