@@ -1945,3 +1945,63 @@ def test_a_failed_source_ons_line_says_a_confirmed_switch_off_once():
     assert line.startswith(f"{server.url}: beam not stable within") and not model.xray_on, line
     assert line.count("X-rays") == 1 and line.endswith("; X-rays switched off, confirmed by STS: STANDBY"), line
     assert err.tube_said
+
+
+def test_a_resume_stopped_while_connecting_counts_the_frames_the_file_holds(
+    tmp_path, scene_toml, bench, sigint_default
+):
+    """A `--resume` stopped before it had reopened the file (Ctrl-C while connecting) said "0
+    frames saved in series.h5; `... --resume` completes it" of a file holding 3 (review s48rv2):
+    an operator told the file is empty may well delete it. The count is the file's."""
+    from radiokit.io import read_progress
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    out = Path(p.output)
+
+    def stop_at(phase_or_frame):
+        seen = []
+
+        def hook(phase, info=None):
+            seen.append(phase)
+            if phase == phase_or_frame and (phase != "frame" or seen.count("frame") == 3):
+                signal.raise_signal(signal.SIGINT)
+
+        return hook
+
+    with pytest.raises(KeyboardInterrupt):
+        run(p, devices=sim_devices(p, bench=bench), progress=False, on_phase=stop_at("frame"))
+    held = read_progress(out).frames_complete
+    assert held >= 3
+    with pytest.raises(KeyboardInterrupt) as info:
+        run(p, devices=sim_devices(p, bench=bench), progress=False, resume=True, on_phase=stop_at("connect"))
+    assert info.value.result.phase == "connect"
+    assert info.value.result.frames_total == held == read_progress(out).frames_complete
+
+
+@pytest.mark.parametrize("over", [False, True], ids=["new", "overwrite"])
+def test_cli_stopped_before_the_run_began_says_what_the_file_is(over, tmp_path, scene_toml, capsys, monkeypatch):
+    """A stop while the run still checked its file or took the source's port (before its result
+    existed) said "nothing saved; `... --resume` completes it": of an --overwrite's previous
+    series, a resume that goes on with the series it was to replace; and no "never reached the
+    X-ray controller" line, which README promises for a series stopped before its first command
+    (review s48rv2). Now what the file is, as after a stop while connecting, and that line."""
+    import acquisition.protocols.compression_series as cs
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    out = Path(p.output)
+    before = out.exists() or _old_series(out) if over else None
+
+    def hold(*args, **kwargs):
+        raise KeyboardInterrupt  # a Ctrl-C as the port is taken: Python's own, raised there
+
+    monkeypatch.setattr(cs, "_hold_source_port", hold)
+    code = _cli("acquire", str(path), "--sim", "-q", *(["--overwrite"] if over else []))
+    err = capsys.readouterr().err
+    assert code == 130 and "--resume" not in err and "nothing saved" not in err, err
+    assert err.strip().splitlines()[-1].startswith("radiokit never reached the X-ray controller"), err
+    if over:
+        assert f"{out} holds the previous series, unchanged" in err and out.read_bytes() == before, err
+    else:
+        assert "no file was made" in err and not out.exists(), err

@@ -1610,16 +1610,14 @@ def run(
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
     out = Path(p.output)
-    resume, done, complete = _what_to_take(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
+    resume, done, complete, hold = _begin(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
     if complete is not None:
         return complete
-    # the source's port held before the first file is written (the notebook is): refused by
-    # another program's hold (PortBusy), the run leaves no notebook of a series that never began,
-    # which a re-run would then meet, nor a line in a resumed one's. The devices' links share it
-    hold = _hold_source_port(p, sim=sim, devices=devices)
     try:
         notebook = _open_notebook(out)
-        res = Result(str(out), 0, 0, 0.0, 0.0, "connect", resumed=bool(resume))
+        # a resume stopped before it reopens the file (while connecting) still holds the file's
+        # frames: "0 frames saved" of a file holding them invited its deletion (review s48rv2)
+        res = Result(str(out), 0, _frames_in(out) if resume else 0, 0.0, 0.0, "connect", resumed=bool(resume))
         bar = tqdm(total=plan(p, done, warm=True).n_frames, desc="acquire", unit="frame", disable=not progress)
         r = _Run(
             p,
@@ -1681,6 +1679,43 @@ def _hold_source_port(p: Protocol, *, sim, devices):
     from acquisition.transport import hold_port
 
     return hold_port(port)
+
+
+def _begin(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
+    """:func:`_what_to_take`'s ``(resume, done, complete)``, and the source's port held (None
+    when ``complete``). A stop here gets the result of a run not begun (:func:`_not_begun`)."""
+    try:
+        resume, done, complete = _what_to_take(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
+        # the source's port held before the first file is written (the notebook is): refused by
+        # another program's hold (PortBusy), the run leaves no notebook of a series that never
+        # began, which a re-run would then meet, nor a line in a resumed one's. The devices'
+        # links share it
+        hold = None if complete is not None else _hold_source_port(p, sim=sim, devices=devices)
+    except KeyboardInterrupt as exc:
+        exc.result = _not_begun(out, resume)
+        raise
+    return resume, done, complete, hold
+
+
+def _not_begun(out: Path, resume: bool) -> Result:
+    """The result of a run stopped before it sent anything or touched its file (while it checked
+    the file or took the source's port): the file, if there, as it was. Without one the command
+    line said "nothing saved; `... --resume` completes it" of an --overwrite's previous series,
+    which that resume would go on with, and no "never reached the X-ray controller" line."""
+    there = out.exists()
+    try:
+        n = _frames_in(out) if there and resume else 0
+    except Exception:  # not a series (the check that refuses it was cut short): its count unknown
+        n = 0
+    kept = there and not resume  # an --overwrite's previous series, or a file the run would refuse
+    return Result(str(out), 0, n, 0.0, 0.0, "connect", resumed=there and resume, nothing_sent=True, previous_kept=kept)
+
+
+def _frames_in(out: Path) -> int:
+    """The complete frames of the experiment file ``out`` (a resume's, checked by _existing)."""
+    from radiokit.io import read_progress
+
+    return int(read_progress(out).frames_complete)
 
 
 def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
