@@ -2473,8 +2473,7 @@ class L8121:
             raise
         finally:
             self._error_read_at = time.monotonic()  # the beam's SER interval starts here (XON follows)
-        if code == 0 or code in self.config.allowed_error_codes:
-            self._error_good_at = asked
+        if self._error_cleared(code, asked):
             return
         raise SourceFault(
             f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {self._error_meaning(code)}); "
@@ -2482,6 +2481,14 @@ class L8121:
             f"see to the unit, then try again (a code the unit's manual calls harmless: allowed_error_codes "
             f"in its [source] configuration)"
         )
+
+    def _error_cleared(self, code: int, asked: float) -> bool:
+        """Whether ``code``, read by a ``SER`` asked at ``asked`` (``time.time()``), is no fault
+        (0, or one the configuration allows); if so, frames up to ``asked`` are vouched for."""
+        if code == 0 or code in self.config.allowed_error_codes:
+            self._error_good_at = asked
+            return True
+        return False
 
     def _error_meaning(self, code: int) -> str:
         """What L8121.md says of the non-zero error ``code`` in this dialect."""
@@ -2511,8 +2518,7 @@ class L8121:
             return
         self._error_read_at, asked, good = now, time.time(), self._error_good_at
         code = self.error_code()
-        if code == 0 or code in self.config.allowed_error_codes:
-            self._error_good_at = asked
+        if self._error_cleared(code, asked):
             return
         try:  # the code is the cause: not asked again after the switch-off
             self._trip(f"controller error code {code} {when} (SER {code}: {self._error_meaning(code)})", ask_code=False)
@@ -2538,8 +2544,7 @@ class L8121:
             raise
         finally:
             self._error_read_at = time.monotonic()
-        if code == 0 or code in self.config.allowed_error_codes:
-            self._error_good_at = asked
+        if self._error_cleared(code, asked):
             return
         err = SourceFault(
             f"{self.port}: controller error code {code} read after X-rays were switched off (SER {code}: "
