@@ -3417,3 +3417,47 @@ def test_the_observed_share_leaves_out_the_pixels_the_field_carries_out_of_the_f
     assert judged(truth).observed_fraction == pytest.approx((p.obs & ~out).sum() / n_obj)
     gone = judged(truth + np.float32([0.0, 96.0])[:, None, None])
     assert gone.observed_fraction == 0 and gone.interior_observed == 0, gone
+
+
+def test_the_confidence_map_is_zero_where_the_field_carries_pixels_out_of_the_frame():
+    """``Registration.confidence`` (saved with the field, drawn in ``process``'s report, read by
+    ``roi_observed`` for the ROIs' verdict) called observed the pixels the field carries out of
+    the frame, where the moving image holds nothing and the checks judge nothing (session 48
+    changed the shares only). The true field of a body shifted 12 px across the edge: the map
+    is 0 on the strip it carries out, which holds observed rim in the pair's map, and the pair's
+    map elsewhere; a ROI on the strip reads unobserved."""
+    from radiokit.register import Quality, _assess, _carried_out, _pair_checks, roi_observed
+
+    fixed, moving, truth = _edge_body(96, (0.0, 12.0))
+    reg = Registration(truth, "planted", Quality())
+    _assess(reg, fixed, moving, None, {}, 0.0)
+    pair = np.clip(_pair_checks(fixed, moving, None).ob.confidence, 0, 1)
+    out = _carried_out(truth)
+    assert out is not None and np.mean(pair[out] >= 0.5) > 0.5  # the strip holds observed rim
+    assert np.all(reg.confidence[out] == 0)
+    np.testing.assert_array_equal(reg.confidence[~out], pair[~out])
+    c0 = int(np.nonzero(out.all(axis=0))[0][0])  # the columns carried out whole
+    assert roi_observed(reg.confidence, (30, 66, c0, 96)) == 0
+
+
+def test_the_confidence_maps_carried_out_pixels_are_upsampled_as_the_map():
+    """On a frame the checks bin (by ``k``), the carried-out pixels are found on the binned grid
+    and the map upsampled to full resolution by linear interpolation: each binned pixel carried
+    out is 0 over the ``k`` x ``k`` block it averages (a lone one too: thresholding its linear
+    upsampling at 0.5 kept its corners), and every other pixel is the upsampled map's."""
+    import cv2
+
+    from radiokit.register import _full_confidence
+
+    rng = np.random.default_rng(0)
+    conf = rng.uniform(0.2, 1.2, (6, 8)).astype(np.float32)
+    out = np.zeros(conf.shape, bool)
+    out[:, 6:] = True  # a strip of two binned columns
+    out[2, 5] = True  # and one pixel beside it
+    k = 4
+    full = _full_confidence(conf, out, (6 * k, 8 * k))
+    up = np.clip(cv2.resize(conf, (8 * k, 6 * k), interpolation=cv2.INTER_LINEAR), 0, 1)
+    block = np.kron(out, np.ones((k, k), bool))
+    assert np.all(full[block] == 0)
+    np.testing.assert_array_equal(full[~block], up[~block])
+    np.testing.assert_array_equal(_full_confidence(conf, None, (6 * k, 8 * k)), up)
