@@ -1609,6 +1609,30 @@ def test_body_scale_measures_the_fields_departure_from_a_quadratic_motion():
     assert 0.7 < _body_scale(fill, obj, obs, inner) < 1.3
 
 
+def test_body_scale_leaves_out_the_pixels_the_field_carries_out_of_the_frame():
+    """``_body_scale`` fitted its quadratic on the observed rim with the pixels the field carries
+    out of the frame in it, which the checks leave unjudged (the moving image holds nothing
+    there). A silent body at 256 px (its interior 27 % observed) shifted 32 px across the edge,
+    judged as ``silent``: its true field is a shift, 0 px from a quadratic. Carrying the strip
+    already carried out 8 px further changes nothing the checks judge, yet read 1.74 px from
+    body-scale and flagged; fitted on the judged rim, it is the true field's figure and ok."""
+    from radiokit.register import _MIN_OBSERVED, Quality, _assess, _carried_out
+
+    fixed, moving, truth = _edge_body(256, (0.0, 32.0))
+
+    def judged(d):
+        reg = Registration(np.ascontiguousarray(d, np.float32), "planted", Quality(), {"preset": "silent"})
+        _assess(reg, fixed, moving, None, {}, 0.0)
+        return reg.quality
+
+    q = judged(truth)
+    assert q.ok and q.interior_observed < _MIN_OBSERVED and q.body_scale < 1e-3, q
+    further = truth.copy()
+    further[1][_carried_out(truth)] += 8.0
+    q = judged(further)
+    assert q.ok and q.body_scale < 1e-3, (q.body_scale, q.reason)
+
+
 def test_a_silent_body_moving_at_its_own_scale_is_trusted():
     """No texture: the interior is unobserved either way. Under the physical motion (a uniform
     expansion with a lag around the stiffer disc) the observed rim moves as a quadratic does and

@@ -908,7 +908,9 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)
     if q.interior_observed < _MIN_OBSERVED:
-        q.body_scale = k * _body_scale(d, ob.object, obs, inner)
+        # on the judged set: the field's values where it carries pixels out are unjudged (a strip
+        # carried 8 px further out, nothing the checks see changed, read 1.74 px from body-scale)
+        q.body_scale = k * _body_scale(d, ob.object, judged, inner)
         waived = q.body_scale <= _BODY_SCALE_PX and reg.options.get("preset") in _BODY_SCALE_PRESETS
         if waived:
             from radiokit.register import _confidence as C
@@ -1085,7 +1087,8 @@ def coarse_residual_motion(fixed, moving, mask):
 
 def _body_scale(d, obj, obs, inner) -> float:
     """How far the field ``d`` (binned px) departs from a body-scale motion: a quadratic in
-    ``x, y`` per component, least squares over the observed rim (``obs`` outside ``inner``); the
+    ``x, y`` per component, least squares over the observed rim (``obs`` outside ``inner``; the
+    checks pass the part they judge, less what the field carries out of the frame); the
     RMS of ``|d - fit|`` over that rim and over the unobserved interior, the larger. NaN when
     the observed rim leaves more than a quarter of the directions around the object's centroid
     empty (the fit would extrapolate into the interior, not interpolate)."""
