@@ -779,6 +779,47 @@ def test_process_says_which_pair_made_its_exit_code_1(capsys):
     assert out.count("WARNING") == 1
 
 
+def _not_strict_json(word):
+    raise ValueError(f"{word} is not strict JSON")
+
+
+def test_process_of_a_method_that_returns_a_non_finite_field(tmp_path, monkeypatch):
+    """A diverging solve's NaN field, end to end through ``radiokit process``: every pair is
+    flagged with the reason ``register()`` puts first, the main pair's in the headline and each
+    other pair's on one WARNING line, exit 1, no traceback, a strict results.json, and the saved
+    field finite (0 where it was NaN). rc is made to return a NaN patch (monkeypatched): no input
+    makes the method diverge on purpose, and this fault is the one it stands for."""
+    import h5py
+
+    from radiokit import register as R
+
+    R.load_methods()
+    rc = R.METHODS["rc"]
+
+    def diverging(fixed, moving, mask, **options):
+        d, info = rc(fixed, moving, mask, **options)
+        d = np.array(d, np.float32)
+        d[:, 70:90, 70:90] = np.nan  # over the inclusion ROI
+        return d, info
+
+    monkeypatch.setitem(R.METHODS, "rc", diverging)
+    roi = ["--inclusion", "75", "86", "75", "86", "--background", "75", "86", "40", "51", "--crop-mm", "0"]
+    fast = ["-q", "--no-report", "--cross-check", "none", *roi]
+    res = run_cli("process", synthetic(tmp_path / "exp.h5"), "-o", tmp_path / "res", *fast)
+    assert res.returncode == 1 and res.stderr == "", res.stderr
+    why = f"non-finite displacement: {20 * 20} of {160 * 160} pixels NaN or inf"
+    lines = res.stdout.splitlines()
+    assert "change ratio 2->3 " in lines[0] and f"; registration NOT ok: {why}" in lines[0], res.stdout
+    warnings = sorted(line.strip() for line in lines if "WARNING" in line)
+    assert len(warnings) == 2, res.stdout  # the other two pairs, one line each
+    assert all(w.startswith(f"WARNING: pair {p} NOT ok: {why}") for w, p in zip(warnings, ("1->2", "1->3"))), warnings
+    record = json.loads((tmp_path / "res" / "results.json").read_text(), parse_constant=_not_strict_json)
+    assert all(q["reason"].startswith(why) and not q["ok"] for q in record["registration"].values())
+    with h5py.File(tmp_path / "res" / "results.h5") as h5:
+        d = h5["entry/registration/displacement"][()]
+    assert np.isfinite(d).all() and np.all(d[:, 70:90, 70:90] == 0)
+
+
 def test_a_reader_that_closes_the_output_early_is_no_error(tmp_path):
     """``radiokit calibrate ... | head -0``: the reader went away before the summary was printed
     (the calibration already written): "[Errno 32] Broken pipe", exit code 2, as if it had failed.

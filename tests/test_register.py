@@ -1609,6 +1609,30 @@ def test_body_scale_measures_the_fields_departure_from_a_quadratic_motion():
     assert 0.7 < _body_scale(fill, obj, obs, inner) < 1.3
 
 
+def test_body_scale_leaves_out_the_pixels_the_field_carries_out_of_the_frame():
+    """``_body_scale`` fitted its quadratic on the observed rim with the pixels the field carries
+    out of the frame in it, which the checks leave unjudged (the moving image holds nothing
+    there). A silent body at 256 px (its interior 27 % observed) shifted 32 px across the edge,
+    judged as ``silent``: its true field is a shift, 0 px from a quadratic. Carrying the strip
+    already carried out 8 px further changes nothing the checks judge, yet read 1.74 px from
+    body-scale and flagged; fitted on the judged rim, it is the true field's figure and ok."""
+    from radiokit.register import _MIN_OBSERVED, Quality, _assess, _carried_out
+
+    fixed, moving, truth = _edge_body(256, (0.0, 32.0))
+
+    def judged(d):
+        reg = Registration(np.ascontiguousarray(d, np.float32), "planted", Quality(), {"preset": "silent"})
+        _assess(reg, fixed, moving, None, {}, 0.0)
+        return reg.quality
+
+    q = judged(truth)
+    assert q.ok and q.interior_observed < _MIN_OBSERVED and q.body_scale < 1e-3, q
+    further = truth.copy()
+    further[1][_carried_out(truth)] += 8.0
+    q = judged(further)
+    assert q.ok and q.body_scale < 1e-3, (q.body_scale, q.reason)
+
+
 def test_a_silent_body_moving_at_its_own_scale_is_trusted():
     """No texture: the interior is unobserved either way. Under the physical motion (a uniform
     expansion with a lag around the stiffer disc) the observed rim moves as a quadratic does and
@@ -3110,16 +3134,19 @@ def test_a_mask_on_the_last_row_of_an_odd_frame_registers_binned(masked):
     """``bin_pixels`` bins a 257 px pair by 2, and the binning crops the frame to a multiple of 2:
     a mask on its last row or column was cropped away before the thin-mask rule saw it, so no
     bin was left and rc divided by its zero pixel count (ZeroDivisionError). The cropped margin
-    counts in the last bin: the motion along the textured line is observed, and a result the
-    checks trust is within their half pixel there. (The map, not ``observed_fraction``: the true
-    field carries most of that line out of the frame, which the observed share leaves out.)"""
+    counts in the last bin: the motion along the textured line is observed where the field keeps
+    it in the frame, and a result the checks trust is within their half pixel there. (The field
+    carries most of that line out of the frame, 0 in the map as in the observed share.)"""
+    from radiokit.register import _carried_out
+
     n = 257
     fixed, moving, truth = _textured_pair(n)
     mask = np.zeros(fixed.shape, bool)
     mask[masked] = True
     reg = register(fixed, moving, mask=mask, preset="default", bin_pixels=n * n // 3)
     assert reg.options["binned"] == 2
-    assert np.mean(reg.confidence[mask] >= 0.5) > 0.5
+    kept = ~_carried_out(reg.displacement)[mask]
+    assert kept.any() and np.mean(reg.confidence[mask][kept] >= 0.5) > 0.5
     assert not reg.quality.ok or _epe(reg.displacement, truth, mask)[0] < 0.5, reg.quality.reason
 
 
@@ -3417,3 +3444,47 @@ def test_the_observed_share_leaves_out_the_pixels_the_field_carries_out_of_the_f
     assert judged(truth).observed_fraction == pytest.approx((p.obs & ~out).sum() / n_obj)
     gone = judged(truth + np.float32([0.0, 96.0])[:, None, None])
     assert gone.observed_fraction == 0 and gone.interior_observed == 0, gone
+
+
+def test_the_confidence_map_is_zero_where_the_field_carries_pixels_out_of_the_frame():
+    """``Registration.confidence`` (saved with the field, drawn in ``process``'s report, read by
+    ``roi_observed`` for the ROIs' verdict) called observed the pixels the field carries out of
+    the frame, where the moving image holds nothing and the checks judge nothing (session 48
+    changed the shares only). The true field of a body shifted 12 px across the edge: the map
+    is 0 on the strip it carries out, which holds observed rim in the pair's map, and the pair's
+    map elsewhere; a ROI on the strip reads unobserved."""
+    from radiokit.register import Quality, _assess, _carried_out, _pair_checks, roi_observed
+
+    fixed, moving, truth = _edge_body(96, (0.0, 12.0))
+    reg = Registration(truth, "planted", Quality())
+    _assess(reg, fixed, moving, None, {}, 0.0)
+    pair = np.clip(_pair_checks(fixed, moving, None).ob.confidence, 0, 1)
+    out = _carried_out(truth)
+    assert out is not None and np.mean(pair[out] >= 0.5) > 0.5  # the strip holds observed rim
+    assert np.all(reg.confidence[out] == 0)
+    np.testing.assert_array_equal(reg.confidence[~out], pair[~out])
+    c0 = int(np.nonzero(out.all(axis=0))[0][0])  # the columns carried out whole
+    assert roi_observed(reg.confidence, (30, 66, c0, 96)) == 0
+
+
+def test_the_confidence_maps_carried_out_pixels_are_upsampled_as_the_map():
+    """On a frame the checks bin (by ``k``), the carried-out pixels are found on the binned grid
+    and the map upsampled to full resolution by linear interpolation: each binned pixel carried
+    out is 0 over the ``k`` x ``k`` block it averages (a lone one too: thresholding its linear
+    upsampling at 0.5 kept its corners), and every other pixel is the upsampled map's."""
+    import cv2
+
+    from radiokit.register import _full_confidence
+
+    rng = np.random.default_rng(0)
+    conf = rng.uniform(0.2, 1.2, (6, 8)).astype(np.float32)
+    out = np.zeros(conf.shape, bool)
+    out[:, 6:] = True  # a strip of two binned columns
+    out[2, 5] = True  # and one pixel beside it
+    k = 4
+    full = _full_confidence(conf, out, (6 * k, 8 * k))
+    up = np.clip(cv2.resize(conf, (8 * k, 6 * k), interpolation=cv2.INTER_LINEAR), 0, 1)
+    block = np.kron(out, np.ones((k, k), bool))
+    assert np.all(full[block] == 0)
+    np.testing.assert_array_equal(full[~block], up[~block])
+    np.testing.assert_array_equal(_full_confidence(conf, None, (6 * k, 8 * k)), up)

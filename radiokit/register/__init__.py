@@ -156,7 +156,9 @@ class Registration:
     method: str
     quality: Quality
     options: dict = field(default_factory=dict)
-    confidence: np.ndarray | None = None  # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed
+    # (rows, cols) float32 in [0, 1]; >= 0.5: motion observed; 0 where the field carries the pixel out
+    # of the frame (the moving image holds nothing there: _full_confidence)
+    confidence: np.ndarray | None = None
     # B-spline methods: the lattices the field is the sum of, coarse to fine ((lattice, coefficients));
     # what rc's ``start_lattices`` takes (``auto`` runs its plain preset's finest level on them);
     # None where the field is not theirs alone (a silent preset adds the silhouette's map)
@@ -892,15 +894,9 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     full-resolution pixels, as the error it stands for is judged (a 2240 frame's step is taken on
     the pair binned by 4); the noise in the image's units, ``scale`` what register() multiplied
     the pair by (``_rescale``)."""
-    import cv2
-
     q = reg.quality
     ob, k = p.ob, p.k
-    rows, cols = reg.displacement.shape[1:]
-    conf = ob.confidence
-    if conf.shape != (rows, cols):
-        conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
-    reg.confidence = np.clip(conf, 0, 1).astype(np.float32)
+    reg.confidence = _full_confidence(ob.confidence, out, reg.displacement.shape[1:])
     obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
     q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
@@ -912,7 +908,9 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)
     if q.interior_observed < _MIN_OBSERVED:
-        q.body_scale = k * _body_scale(d, ob.object, obs, inner)
+        # on the judged set: the field's values where it carries pixels out are unjudged (a strip
+        # carried 8 px further out, nothing the checks see changed, read 1.74 px from body-scale)
+        q.body_scale = k * _body_scale(d, ob.object, judged, inner)
         waived = q.body_scale <= _BODY_SCALE_PX and reg.options.get("preset") in _BODY_SCALE_PRESETS
         if waived:
             from radiokit.register import _confidence as C
@@ -943,6 +941,30 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
             f"(residual above the noise's by more than {100 * _EXCESS:.0f} %)"
         )
     return reasons, n_obj
+
+
+def _full_confidence(conf, out, shape) -> np.ndarray:
+    """``Registration.confidence``: the checks' map ``conf`` (their grid) upsampled to ``shape``
+    (linear interpolation), in [0, 1], and 0 where the field carries the pixel out of the frame
+    (``out``, the checks' grid, :func:`_judged`'s; None: nowhere). Why: the moving image holds
+    nothing there, so the motion is not observed, as the checks' shares already count it
+    (:func:`_observed`); the map is what is saved, drawn and read for the ROIs (``roi_observed``).
+    A pixel is out where the binned pixel nearest to it is, on the grid the map is interpolated
+    from (cv2's pixel centres: full-resolution x at binned ``(x + 0.5) * n / N - 0.5``): on a
+    grid binned by k, each binned pixel's own k x k block, the block it averages."""
+    import cv2
+
+    rows, cols = shape
+    if conf.shape != (rows, cols):
+        if out is not None:
+            nearest = [
+                np.minimum(((np.arange(full) + 0.5) * (n / full)).astype(np.intp), n - 1)
+                for n, full in zip(conf.shape, shape, strict=True)
+            ]
+            out = out[np.ix_(*nearest)]
+        conf = cv2.resize(conf, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    conf = np.clip(conf, 0, 1).astype(np.float32)
+    return conf if out is None else np.where(out, np.float32(0), conf)
 
 
 # The checks judge a field on the observed object it keeps in the frame (:func:`_judged`); one
@@ -1065,7 +1087,8 @@ def coarse_residual_motion(fixed, moving, mask):
 
 def _body_scale(d, obj, obs, inner) -> float:
     """How far the field ``d`` (binned px) departs from a body-scale motion: a quadratic in
-    ``x, y`` per component, least squares over the observed rim (``obs`` outside ``inner``); the
+    ``x, y`` per component, least squares over the observed rim (``obs`` outside ``inner``; the
+    checks pass the part they judge, less what the field carries out of the frame); the
     RMS of ``|d - fit|`` over that rim and over the unobserved interior, the larger. NaN when
     the observed rim leaves more than a quarter of the directions around the object's centroid
     empty (the fit would extrapolate into the interior, not interpolate)."""
