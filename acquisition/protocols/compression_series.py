@@ -109,6 +109,20 @@ log = logging.getLogger("acquisition.protocol")
 
 PHASES = ("connect", "warm-up", "darks", "flats", "steps", "close")
 
+#: What a series imports late, after its first X-ray command unless imported first
+#: (:func:`_import_ahead`, as the connect begins): the judgement of its darks and flats
+#: (:func:`radiokit.calibrate.judge_frames`: numpy.ma; OpenCV's resize after the flats; scipy's
+#: distance transform where the defect map leaves a tile without valid pixels), and the virtual
+#: bench's projection at the first frame with the phantom in the beam. Why: a stop signal that
+#: lands inside an import waits for the import's end (:func:`radiokit.interrupts.after_import`),
+#: the tube on if it is (sim.imaging and sim.xray were first imported in the first projection's
+#: exposure); one held past the wait's cap is raised inside the import, where a Cython module's
+#: bare ``except:`` may swallow it, and the series would go on to its next XON with every later
+#: Ctrl-C only acknowledged. tests/test_safety.py records what a run first imports from its first
+#: X-ray command on (``imports_recorder``): nothing.
+_SERIES_IMPORTS = ("numpy.ma", "radiokit.calibrate", "cv2", "scipy.ndimage")
+_SIM_IMPORTS = ("sim.imaging", "sim.xray")
+
 
 class ProtocolError(DeviceError):
     """A protocol that cannot run as written (bad TOML, a file that belongs to another protocol)."""
@@ -1167,6 +1181,7 @@ def _phase_connect(r: _Run):
     """Devices, then the source's state first of all: X-rays left on (by a run that was killed, or
     by hand) are switched off, and confirmed, before anything else and before any person is asked
     to do anything."""
+    _import_ahead(r)
     if r.devices is None:
         r.devices = sim_devices(r.p, progress=r.progress) if r.sim else lab_devices(r.p)
     r.guard.reinstall()  # building the devices may have loaded a C library that took the signals
@@ -1181,6 +1196,18 @@ def _phase_connect(r: _Run):
         src.off()
     if not src.interlock_closed():
         log.warning("interlock open: close the cabinet before X-rays are needed")
+
+
+def _import_ahead(r: _Run) -> None:
+    """Import now, before anything is sent, what the series would first import with X-rays on or
+    between its beam periods (:data:`_SERIES_IMPORTS`). A command that never runs a series (a dry
+    run, ``source status``) still imports none of it."""
+    import importlib
+
+    bench = r.sim or getattr(r.devices, "bench", None) is not None  # (the demo passes its virtual bench's devices)
+    names = _SERIES_IMPORTS + (_SIM_IMPORTS if bench else ())
+    for name in names:
+        importlib.import_module(name)
 
 
 def _phase_warm_up(r: _Run):
