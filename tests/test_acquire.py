@@ -1777,6 +1777,52 @@ def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml,
     assert aside.name in said.err and "a run would first restore" in said.err, said.err
 
 
+# A module whose import takes a Ctrl-C and runs on past the import wait's cap (made 0.05 s below)
+# inside a bare except, as Cython-built modules' imports do (their memoryview's Sequence.register)
+SWALLOWED_PAST_THE_CAP = """
+import signal, time
+try:
+    signal.raise_signal(signal.SIGINT)
+    t = time.monotonic()
+    while time.monotonic() - t < 0.5:  # the handler runs here, every 10 ms, and at last raises
+        pass
+except:  # noqa: E722 -- the library's bare except, which is the point
+    pass
+IMPORTED = True
+"""
+
+
+def test_a_stop_swallowed_inside_an_import_stops_the_series_before_any_x_ray_command(
+    tmp_path, scene_toml, bench, monkeypatch
+):
+    """A stop that lands inside an import waits for its end, at most IMPORT_WAIT_S, then is raised
+    inside it: a library's bare except swallowed it there, and the guard, stopping already, let
+    the series go on to switch X-rays on, every later Ctrl-C only saying "please wait". The series
+    now raises it again at its next phase, before any X-ray command. The import (one the series
+    makes as it connects) and the signal are real; the cap is made short."""
+    import radiokit.interrupts as interrupts
+    from acquisition.guardian import StopSignal
+    from acquisition.protocols import compression_series
+
+    name = f"swallowed_past_the_cap_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(SWALLOWED_PAST_THE_CAP)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.05)
+    monkeypatch.setattr(compression_series, "_SERIES_IMPORTS", (name,))
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    dev = sim_devices(p, bench=bench)
+    try:
+        with pytest.raises(StopSignal) as stop:
+            run(p, devices=dev, progress=False)
+        assert sys.modules[name].IMPORTED  # swallowed: the import ran to its end
+    finally:
+        sys.modules.pop(name, None)
+    res = stop.value.result
+    assert stop.value.signum == signal.SIGINT and res.phase == "connect", res  # where it came
+    assert res.tube_off is True and not dev.emulator.xray_on
+    assert not {"XON", "WUP"} & {c.split()[0] for c in dev.emulator.commands}, dev.emulator.commands
+
+
 @pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])
 def test_ctrl_c_while_radiokit_starts_is_one_line_exit_130(tmp_path, module):
     """Ctrl-C in the first second of `radiokit acquire` -- radiokit.cli's own imports (numpy), or

@@ -1150,6 +1150,7 @@ class _Run:
 
     def enter(self, phase, info=None):
         self.guard.reinstall()
+        self.guard.raise_if_lost()  # a stop a library swallowed: the series goes no further
         self.phase = phase
         log.info("phase %s", phase)  # the notebook says where a run was when it stopped
         self.bar.set_description(phase)
@@ -1228,6 +1229,7 @@ def _phase_warm_up(r: _Run):
     r.devices.detector.arm()
     if needed:
         _panel_check(r)
+        r.guard.raise_if_lost()  # no warm-up after a stop that never reached the run
         t = time.perf_counter()
         try:
             # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
@@ -1402,6 +1404,7 @@ def _beam_on(r: _Run, n: int, what: str):
     # the file would refuse
     _refuse_without_room(r, f"X-rays were not switched on for {what}")
     _panel_check(r)
+    r.guard.raise_if_lost()  # no XON after a stop that never reached the run
     r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
