@@ -183,7 +183,6 @@ class SignalGuard:
 
     def __init__(self):
         self.stopping = False
-        self.received: list[int] = []
         self._raised: int | None = None  # the signal of the stop this guard raised (raise_if_lost)
         self._old: dict[int, object] = {}
         self._depth = 0
@@ -331,7 +330,6 @@ class SignalGuard:
         (self._old_hook or sys.__unraisablehook__)(unraisable)
 
     def _handle(self, signum, frame) -> None:
-        self.received.append(signum)
         if self.stopping:
             _say(f"\n{signal.Signals(signum).name} received: switching the X-ray tube off first, please wait")
             return
