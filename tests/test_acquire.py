@@ -37,6 +37,7 @@ import h5py
 import numpy as np
 import pytest
 
+from acquisition.cli import QUERIES_ONLY
 from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
 from acquisition.protocols import load_protocol, plan, run, sim_devices
 from radiokit.io import ExperimentWriter, ImageKey
@@ -1750,6 +1751,10 @@ def test_cli_stopped_while_connecting_does_not_offer_a_file_it_never_made(tmp_pa
     code, err = _cli_stopped_when(capsys, notebook, "> ", "acquire", str(path), "--sim", "-q", poll_s=0.01)
     assert code == 130 and "in phase connect" in err, err
     assert not out.exists() and "--resume" not in err and "frames saved" not in err, err
+    # and the tube's line last: stopped inside the connect's queries (TYP: 0.3 s each), it said
+    # nothing of the tube (review s48rv2); once connected, the switch-off's
+    last = err.strip().splitlines()[-1]
+    assert last == QUERIES_ONLY or re.fullmatch(r"tube off \(confirmed by STS: \w+\)", last), err
 
 
 def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml, capsys):

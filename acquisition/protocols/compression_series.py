@@ -845,7 +845,7 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
         closers = [server.stop]
         try:  # the emulator lives and dies with this process: no guardian
             source = L8121(server.url, baudrate=p.source.baudrate, **_source_config(p))
-        except Exception:
+        except BaseException:  # a Ctrl-C in the connect too: its serving thread and pty go with it
             server.stop()
             raise
 
@@ -989,6 +989,8 @@ class Result:
     tube_state: str = ""
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
+    #: stopped while connecting to the virtual bench's own emulated controller: queries at most
+    queries_only: bool = False
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
     previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
     file_removed: bool = False  # stopped before its first frame, the new file it made was removed (held none)
@@ -1867,6 +1869,10 @@ def _stop(r: _Run, exc: BaseException):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
+    elif res.tube_off is None and isinstance(exc, KeyboardInterrupt) and r.devices is None and _own_emulator(r):
+        # the virtual bench's own emulator, stopped in its connect (queries: TYP, STS): not a unit
+        # anyone must check, and the stop line said nothing of the tube (review s48rv2)
+        res.queries_only = True
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
     if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None and not res.file_lost:
@@ -1888,6 +1894,7 @@ def _stop(r: _Run, exc: BaseException):
         else f"stopped by {type(exc).__name__}"
     )
     tube = {True: "tube off", False: "tube NOT confirmed off", None: "source not contacted"}[res.tube_off]
+    tube = "queries only sent to the source" if res.queries_only else tube
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
@@ -1993,6 +2000,12 @@ def _before_source(r: _Run, exc: BaseException) -> bool:
     :func:`_guarded_source`, whose errors all carry ``source_unreached``. (The virtual bench's own
     emulator is not a controller anyone must check.)"""
     return (not r.sim or bool(r.p.sim.source_port)) and not hasattr(exc, "source_unreached")
+
+
+def _own_emulator(r: _Run) -> bool:
+    """Whether the run's source is the virtual bench's own emulator (``--sim`` without ``[sim]
+    source_port``): it lives in this process, and nothing but this run can switch it on."""
+    return r.sim and not r.p.sim.source_port
 
 
 def _stop_frame(r: _Run) -> None:
