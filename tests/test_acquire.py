@@ -992,11 +992,10 @@ print(json.dumps([counted, sorted(m for m in ("asyncio", "cv2", "imagecodecs", "
 
 def test_a_quiet_acquire_starts_without_the_tiff_codecs_opencv_or_asyncio(tmp_path):
     """tifffile and imagecodecs (TIFF inputs only: the output check read the protocol's TOML through
-    tifffile), OpenCV (the defect map's smoothing) and asyncio (tqdm.auto's, for a bar that draws
-    nothing) are not imported by the command's start: about 0.13 CPU s of each run's start, where
-    the safety tests start some 150 runs. (A series imports OpenCV as its connect begins, before its
-    first X-ray command: compression_series._SERIES_IMPORTS.) A process of its own: what it
-    imported is the point."""
+    tifffile), OpenCV (the defect map's smoothing, after the flats) and asyncio (tqdm.auto's, for a
+    bar that draws nothing) are not imported before the run's first frame: about 0.13 CPU s of each
+    run's start, where the safety tests start some 150 runs. A process of its own: what it imported
+    is the point."""
     path = tmp_path / "protocol.toml"
     path.write_text('output = "series.h5"\n')
     res = subprocess.run(
@@ -1813,7 +1812,7 @@ def test_a_stop_swallowed_inside_an_import_stops_the_series_before_any_x_ray_com
     (tmp_path / f"{name}.py").write_text(SWALLOWED_PAST_THE_CAP)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.05)
-    monkeypatch.setattr(compression_series, "_SERIES_IMPORTS", (name,))
+    monkeypatch.setattr(compression_series, "_SIM_IMPORTS", (name,))
     p = protocol(tmp_path, scene_toml, link_s=0.01)
     dev = sim_devices(p, bench=bench)
     try:

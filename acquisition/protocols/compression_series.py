@@ -109,18 +109,15 @@ log = logging.getLogger("acquisition.protocol")
 
 PHASES = ("connect", "warm-up", "darks", "flats", "steps", "close")
 
-#: What a series imports late, after its first X-ray command unless imported first
-#: (:func:`_import_ahead`, as the connect begins): the judgement of its darks and flats
-#: (:func:`radiokit.calibrate.judge_frames`: numpy.ma; OpenCV's resize after the flats; scipy's
-#: distance transform where the defect map leaves a tile without valid pixels), and the virtual
-#: bench's projection at the first frame with the phantom in the beam. Why: a stop signal that
-#: lands inside an import waits for the import's end (:func:`radiokit.interrupts.after_import`),
-#: the tube on if it is (sim.imaging and sim.xray were first imported in the first projection's
-#: exposure); one held past the wait's cap is raised inside the import, where a Cython module's
-#: bare ``except:`` may swallow it, and the series would go on to its next XON with every later
-#: Ctrl-C only acknowledged. tests/test_safety.py records what a run first imports from its first
-#: X-ray command on (``imports_recorder``): nothing.
-_SERIES_IMPORTS = ("numpy.ma", "radiokit.calibrate", "cv2", "scipy.ndimage")
+#: What a series on the virtual bench first imported with X-rays on (the frames' projection, at
+#: the first frame with the phantom in the beam), imported as its connect begins instead
+#: (:func:`_import_ahead`). Why: a stop signal that lands inside an import waits for the import's
+#: end (:func:`radiokit.interrupts.after_import`), the tube on if it is. A lab series, a tube found
+#: on at the connect, ``source on`` and ``source warm-up`` import nothing while X-rays may be on
+#: (session 49); what a series imports between its beam periods (the judgement's numpy.ma, OpenCV,
+#: scipy.ndimage) waits with the tube off, and a stop swallowed there is raised again before the
+#: next X-ray command (:meth:`~acquisition.guardian.SignalGuard.raise_if_lost`).
+#: tests/test_safety.py records what a run first imports with X-rays possibly on: nothing.
 _SIM_IMPORTS = ("sim.imaging", "sim.xray")
 
 
@@ -1202,15 +1199,13 @@ def _phase_connect(r: _Run):
 
 
 def _import_ahead(r: _Run) -> None:
-    """Import now, before anything is sent, what the series would first import with X-rays on or
-    between its beam periods (:data:`_SERIES_IMPORTS`). A command that never runs a series (a dry
-    run, ``source status``) still imports none of it."""
+    """Import now, before anything is sent, what the series would first import with X-rays on
+    (:data:`_SIM_IMPORTS`, on the virtual bench only)."""
     import importlib
 
-    bench = r.sim or getattr(r.devices, "bench", None) is not None  # (the demo passes its virtual bench's devices)
-    names = _SERIES_IMPORTS + (_SIM_IMPORTS if bench else ())
-    for name in names:
-        importlib.import_module(name)
+    if r.sim or getattr(r.devices, "bench", None) is not None:  # (the demo passes its virtual bench's devices)
+        for name in _SIM_IMPORTS:
+            importlib.import_module(name)
 
 
 def _phase_warm_up(r: _Run):
