@@ -494,6 +494,12 @@ NOTHING_SENT = (
     "nothing and did not change the tube; check the controller's state at the unit"
 )
 
+#: The last line when a series was stopped while connecting to the virtual bench's own emulated controller.
+QUERIES_ONLY = (
+    "radiokit was stopped while connecting to the virtual bench's emulated X-ray controller: it sent "
+    "queries at most, nothing that switches X-rays on"
+)
+
 
 def _finish(res, code: int, err: bool = True) -> int:
     """The last line: the tube's state, or the warning (and exit code 3) when it is not confirmed,
@@ -505,6 +511,9 @@ def _finish(res, code: int, err: bool = True) -> int:
         return code or 1
     if getattr(res, "nothing_sent", False):  # (None, or a result of an older shape: no)
         _say(NOTHING_SENT)
+        return code
+    if getattr(res, "queries_only", False):
+        _say(QUERIES_ONLY)
         return code
     if res is None or res.tube_off is None:
         return code

@@ -183,7 +183,7 @@ class SignalGuard:
 
     def __init__(self):
         self.stopping = False
-        self.received: list[int] = []
+        self._raised: int | None = None  # the signal of the stop this guard raised (raise_if_lost)
         self._old: dict[int, object] = {}
         self._depth = 0
         self._listeners: list = []
@@ -230,8 +230,21 @@ class SignalGuard:
         self._redelivered.clear()
         if not pending or self._cleaning:  # during the switch-off a stop is only acknowledged
             return None
-        self.stopping = True
+        self.stopping, self._raised = True, pending[0]
         return StopSignal(pending[0])
+
+    def raise_if_lost(self) -> None:
+        """Raise again a stop this guard raised that never reached the run: the guard is
+        stopping and the switch-off has not begun (:meth:`cleanup`). Only where no stop can be on
+        its way up -- a point of the run's normal flow, whose stop path enters :meth:`cleanup`
+        first thing (the series: at each phase, before the warm-up and each XON).
+
+        Why: a stop that lands inside an import waits for its end, at most
+        :data:`~radiokit.interrupts.IMPORT_WAIT_S`, and is then raised inside it, where a Cython
+        module's bare ``except:`` may swallow it: the guard stayed stopping, the series went on
+        to switch X-rays on, and every later Ctrl-C only said "please wait"."""
+        if self.stopping and not self._cleaning and self._raised is not None:
+            raise StopSignal(self._raised)
 
     def on_signal(self, callback) -> None:
         """Call ``callback()`` (no arguments, from the watcher thread) as soon as a guarded signal
@@ -317,13 +330,13 @@ class SignalGuard:
         (self._old_hook or sys.__unraisablehook__)(unraisable)
 
     def _handle(self, signum, frame) -> None:
-        self.received.append(signum)
         if self.stopping:
             _say(f"\n{signal.Signals(signum).name} received: switching the X-ray tube off first, please wait")
             return
         if after_import(signum, frame, self._redelivered):  # raised inside an import, a bare except swallowed it
             return
         self.stopping = True  # before raising: a second signal must not interrupt the cleanup
+        self._raised = signum  # (past the import wait's cap, raised inside an import: raise_if_lost)
         raise StopSignal(signum)
 
 

@@ -37,6 +37,7 @@ import h5py
 import numpy as np
 import pytest
 
+from acquisition.cli import QUERIES_ONLY
 from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
 from acquisition.protocols import load_protocol, plan, run, sim_devices
 from radiokit.io import ExperimentWriter, ImageKey
@@ -1749,6 +1750,10 @@ def test_cli_stopped_while_connecting_does_not_offer_a_file_it_never_made(tmp_pa
     code, err = _cli_stopped_when(capsys, notebook, "> ", "acquire", str(path), "--sim", "-q", poll_s=0.01)
     assert code == 130 and "in phase connect" in err, err
     assert not out.exists() and "--resume" not in err and "frames saved" not in err, err
+    # and the tube's line last: stopped inside the connect's queries (TYP: 0.3 s each), it said
+    # nothing of the tube (review s48rv2); once connected, the switch-off's
+    last = err.strip().splitlines()[-1]
+    assert last == QUERIES_ONLY or re.fullmatch(r"tube off \(confirmed by STS: \w+\)", last), err
 
 
 def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml, capsys):
@@ -1774,6 +1779,52 @@ def test_cli_dry_run_leaves_a_set_aside_series_where_it_is(tmp_path, scene_toml,
     said = capsys.readouterr()
     assert aside.read_bytes() == b"the old series" and not out.exists()
     assert aside.name in said.err and "a run would first restore" in said.err, said.err
+
+
+# A module whose import takes a Ctrl-C and runs on past the import wait's cap (made 0.05 s below)
+# inside a bare except, as Cython-built modules' imports do (their memoryview's Sequence.register)
+SWALLOWED_PAST_THE_CAP = """
+import signal, time
+try:
+    signal.raise_signal(signal.SIGINT)
+    t = time.monotonic()
+    while time.monotonic() - t < 0.5:  # the handler runs here, every 10 ms, and at last raises
+        pass
+except:  # noqa: E722 -- the library's bare except, which is the point
+    pass
+IMPORTED = True
+"""
+
+
+def test_a_stop_swallowed_inside_an_import_stops_the_series_before_any_x_ray_command(
+    tmp_path, scene_toml, bench, monkeypatch
+):
+    """A stop that lands inside an import waits for its end, at most IMPORT_WAIT_S, then is raised
+    inside it: a library's bare except swallowed it there, and the guard, stopping already, let
+    the series go on to switch X-rays on, every later Ctrl-C only saying "please wait". The series
+    now raises it again at its next phase, before any X-ray command. The import (one the series
+    makes as it connects) and the signal are real; the cap is made short."""
+    import radiokit.interrupts as interrupts
+    from acquisition.guardian import StopSignal
+    from acquisition.protocols import compression_series
+
+    name = f"swallowed_past_the_cap_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(SWALLOWED_PAST_THE_CAP)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.05)
+    monkeypatch.setattr(compression_series, "_SIM_IMPORTS", (name,))
+    p = protocol(tmp_path, scene_toml, link_s=0.01)
+    dev = sim_devices(p, bench=bench)
+    try:
+        with pytest.raises(StopSignal) as stop:
+            run(p, devices=dev, progress=False)
+        assert sys.modules[name].IMPORTED  # swallowed: the import ran to its end
+    finally:
+        sys.modules.pop(name, None)
+    res = stop.value.result
+    assert stop.value.signum == signal.SIGINT and res.phase == "connect", res  # where it came
+    assert res.tube_off is True and not dev.emulator.xray_on
+    assert not {"XON", "WUP"} & {c.split()[0] for c in dev.emulator.commands}, dev.emulator.commands
 
 
 @pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])

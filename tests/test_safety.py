@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import re
 import signal
@@ -154,10 +155,15 @@ class Acquire:
     """``radiokit acquire`` in a subprocess with its own process group; output (stdout and stderr,
     the guardian's included) collected line by line."""
 
-    def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True):
+    def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True, record_imports=None):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
         code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        if record_imports is not None:  # what the command first imports while X-rays may be on (imports_recorder)
+            code = (
+                f"import sys; sys.path.insert(0, {str(ROOT / 'tests')!r}); import imports_recorder; "
+                f"imports_recorder.install({str(record_imports)!r}); from radiokit.cli import main; sys.exit(main())"
+            )
         if sigint_ignored:  # the disposition survives exec, as a shell's does
             code = (
                 "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
@@ -337,13 +343,20 @@ def test_signal_in_phase_leaves_the_tube_off(tmp_path, scene_file, controller, s
     sim = {"settle_s": SETTLE_ROW_S} if phase.startswith("settle") else None
     series = None if phase.startswith("projection") else BEFORE_PROJECTIONS
     proto = write_protocol(tmp_path, scene_file, server, sim=sim, series=series)
-    acq = Acquire(proto, "--sim", "-q")
+    # the rows that pass the flats' and a projection's exposures, the command's exit its own
+    imports = tmp_path / "imports.json" if phase.startswith("projection") and sig != "SIGKILL" else None
+    acq = Acquire(proto, "--sim", "-q", record_imports=imports)
     reach(phase, model, tmp_path, acq)
     watch = OffWatch(model)
     acq.signal(SIGNALS[sig])
     code = acq.wait()
     off_s = watch.seconds()
     record(f"{sig} in {phase}", model, acq, off_s, code)
+    if imports is not None:
+        # nothing first imported while X-rays may be on: a stop landing inside an import waits for
+        # its end, the tube on (sim.imaging and sim.xray, in the first projection's exposure)
+        late = [name for _, name, _ in json.loads(imports.read_text())]
+        assert late == [], f"first imported while X-rays may have been on: {late}"
     assert not model.xray_on and model.state != 1  # neither the beam nor the warm-up emits
     assert off_s is not None and off_s <= OFF_BOUND_S, f"tube off {off_s} s after {sig}"
     if sig == "SIGKILL":

@@ -109,6 +109,17 @@ log = logging.getLogger("acquisition.protocol")
 
 PHASES = ("connect", "warm-up", "darks", "flats", "steps", "close")
 
+#: What a series on the virtual bench first imported with X-rays on (the frames' projection, at
+#: the first frame with the phantom in the beam), imported as its connect begins instead
+#: (:func:`_import_ahead`). Why: a stop signal that lands inside an import waits for the import's
+#: end (:func:`radiokit.interrupts.after_import`), the tube on if it is. A lab series, a tube found
+#: on at the connect, ``source on`` and ``source warm-up`` import nothing while X-rays may be on
+#: (session 49); what a series imports between its beam periods (the judgement's numpy.ma, OpenCV,
+#: scipy.ndimage) waits with the tube off, and a stop swallowed there is raised again before the
+#: next X-ray command (:meth:`~acquisition.guardian.SignalGuard.raise_if_lost`).
+#: tests/test_safety.py records what a run first imports with X-rays possibly on: nothing.
+_SIM_IMPORTS = ("sim.imaging", "sim.xray")
+
 
 class ProtocolError(DeviceError):
     """A protocol that cannot run as written (bad TOML, a file that belongs to another protocol)."""
@@ -831,7 +842,7 @@ def sim_devices(p: Protocol, *, progress=False, bench=None) -> Devices:
         closers = [server.stop]
         try:  # the emulator lives and dies with this process: no guardian
             source = L8121(server.url, baudrate=p.source.baudrate, **_source_config(p))
-        except Exception:
+        except BaseException:  # a Ctrl-C in the connect too: its serving thread and pty go with it
             server.stop()
             raise
 
@@ -975,6 +986,8 @@ class Result:
     tube_state: str = ""
     port_never_opened: bool = False  # the source's port could not be opened: not a byte was sent
     nothing_sent: bool = False  # stopped before the first byte to the source: its state was not touched
+    #: stopped while connecting to the virtual bench's own emulated controller: queries at most
+    queries_only: bool = False
     already_complete: bool = False  # resume=True on a file holding every frame: nothing was touched
     previous_kept: bool = False  # overwrite=True stopped before its first frame: the old file is as it was
     file_removed: bool = False  # stopped before its first frame, the new file it made was removed (held none)
@@ -1136,6 +1149,7 @@ class _Run:
 
     def enter(self, phase, info=None):
         self.guard.reinstall()
+        self.guard.raise_if_lost()  # a stop a library swallowed: the series goes no further
         self.phase = phase
         log.info("phase %s", phase)  # the notebook says where a run was when it stopped
         self.bar.set_description(phase)
@@ -1167,6 +1181,7 @@ def _phase_connect(r: _Run):
     """Devices, then the source's state first of all: X-rays left on (by a run that was killed, or
     by hand) are switched off, and confirmed, before anything else and before any person is asked
     to do anything."""
+    _import_ahead(r)
     if r.devices is None:
         r.devices = sim_devices(r.p, progress=r.progress) if r.sim else lab_devices(r.p)
     r.guard.reinstall()  # building the devices may have loaded a C library that took the signals
@@ -1181,6 +1196,16 @@ def _phase_connect(r: _Run):
         src.off()
     if not src.interlock_closed():
         log.warning("interlock open: close the cabinet before X-rays are needed")
+
+
+def _import_ahead(r: _Run) -> None:
+    """Import now, before anything is sent, what the series would first import with X-rays on
+    (:data:`_SIM_IMPORTS`, on the virtual bench only)."""
+    import importlib
+
+    if r.sim or getattr(r.devices, "bench", None) is not None:  # (the demo passes its virtual bench's devices)
+        for name in _SIM_IMPORTS:
+            importlib.import_module(name)
 
 
 def _phase_warm_up(r: _Run):
@@ -1201,6 +1226,7 @@ def _phase_warm_up(r: _Run):
     r.devices.detector.arm()
     if needed:
         _panel_check(r)
+        r.guard.raise_if_lost()  # no warm-up after a stop that never reached the run
         t = time.perf_counter()
         try:
             # the exposure's own kV and µA: a warm-up emits (B's is an XON at the presets), so it
@@ -1375,6 +1401,7 @@ def _beam_on(r: _Run, n: int, what: str):
     # the file would refuse
     _refuse_without_room(r, f"X-rays were not switched on for {what}")
     _panel_check(r)
+    r.guard.raise_if_lost()  # no XON after a stop that never reached the run
     r.beam_planned = (n * r.p.detector.frame_period_s + RAMP_ESTIMATE_S, n, what)
     r.beam_since = time.perf_counter()
     reading = r.source.on(r.p.source.voltage_kv, r.p.source.current_ua)
@@ -1837,6 +1864,10 @@ def _stop(r: _Run, exc: BaseException):
         res.port_never_opened = True  # nothing was sent: radiokit cannot have switched X-rays on
     elif res.tube_off is None and getattr(exc, "source_unreached", False):
         res.tube_off = False  # the port opened but the source did not answer: nobody knows its state
+    elif res.tube_off is None and isinstance(exc, KeyboardInterrupt) and r.devices is None and _own_emulator(r):
+        # the virtual bench's own emulator, stopped in its connect (queries: TYP, STS): not a unit
+        # anyone must check, and the stop line said nothing of the tube (review s48rv2)
+        res.queries_only = True
     if beam_period:
         r.beam_on_s += time.perf_counter() - r.beam_since
     if monitor is not None and (monitor.error is not None or unvouched) and r.writer is not None and not res.file_lost:
@@ -1858,6 +1889,7 @@ def _stop(r: _Run, exc: BaseException):
         else f"stopped by {type(exc).__name__}"
     )
     tube = {True: "tube off", False: "tube NOT confirmed off", None: "source not contacted"}[res.tube_off]
+    tube = "queries only sent to the source" if res.queries_only else tube
     # INFO: the caller reports the exception itself (one line on the console); the notebook keeps it
     log.info("%s in phase %s: %s; %s; %d frames in %s", what, r.phase, exc, tube, res.frames_total, r.out)
     exc.result = res
@@ -1963,6 +1995,12 @@ def _before_source(r: _Run, exc: BaseException) -> bool:
     :func:`_guarded_source`, whose errors all carry ``source_unreached``. (The virtual bench's own
     emulator is not a controller anyone must check.)"""
     return (not r.sim or bool(r.p.sim.source_port)) and not hasattr(exc, "source_unreached")
+
+
+def _own_emulator(r: _Run) -> bool:
+    """Whether the run's source is the virtual bench's own emulator (``--sim`` without ``[sim]
+    source_port``): it lives in this process, and nothing but this run can switch it on."""
+    return r.sim and not r.p.sim.source_port
 
 
 def _stop_frame(r: _Run) -> None:
