@@ -3459,8 +3459,10 @@ def test_emulator_scheduled_faults(dialect):
     ],
 )
 def test_command_line_serves_a_pty(argv, baud, exchange):
+    # a warm-up far longer than the exchange: B's STS after XON must read AGING however loaded the
+    # machine (at 0.1 s it read STANDBY once at load 7, the warm-up over before the query)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "0.1", *argv],
+        [sys.executable, "-m", "acquisition.emulators.l8121", "--pty", "--warmup-s", "60", *argv],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
