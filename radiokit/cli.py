@@ -388,7 +388,7 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _judge_files(darks, flats, hints) -> None:
+def _judge_files(darks, flats, dark_hints, flat_hints) -> None:
     """Open every dark and flat file and judge it from its header (frames in it, one frame shape
     per list), before any frame is read: every bad file named, each on its own line
     (:func:`radiokit.io.judge_all`), each closed before the next opens. :func:`_stack` reads them
@@ -396,7 +396,7 @@ def _judge_files(darks, flats, hints) -> None:
     from radiokit.io import FormatError, InputErrors, judge_all
 
     errors = []
-    for paths in (darks, flats):
+    for paths, hints in ((darks, dark_hints), (flats, flat_hints)):
         shapes = []
 
         def judge(src, shapes=shapes):
@@ -511,8 +511,8 @@ def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, line_summary
-    from radiokit.io import FormatError, atomic_path, check_output
+    from radiokit.calibrate import Calibration, line_summary
+    from radiokit.io import atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
@@ -527,32 +527,7 @@ def cmd_calibrate(args) -> int:
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
-        # a file given twice counted its frames twice: "3 darks" from 2, and the noise estimate
-        # and the zinger rejection fed one frame as two. One file in both lists is allowed: an
-        # experiment-style file holds darks and flats, told apart by image_key
-        _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
-        _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints, origins, bits, layouts, scalings = _raw_hints(args), {"dark": [], "flat": []}, {}, {}, {}
-        _judge_files(args.dark, args.flat, hints)
-        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts, scalings)
-        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts, scalings)
-        declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
-        if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
-            raise ValueError(
-                f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
-                f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
-            )
-        try:
-            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
-        except FrameLevelError as exc:  # the stack's index, named as the file's frame
-            path, index = origins[exc.kind][exc.index]
-            raise FormatError(path, f"frame {index} ({exc})") from exc
-        except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
-            raise ValueError(
-                f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
-            ) from exc
-        cal.provenance["dark_files"] = [str(p) for p in args.dark]
-        cal.provenance["flat_files"] = [str(p) for p in args.flat]
+        cal = _calibration_from_files(args, th)
     # built in memory first: its size is then known, and a disk or file-size limit too small for
     # it is refused before the first byte (libhdf5 failing mid-write has crashed the interpreter)
     image = io.BytesIO()
@@ -570,6 +545,65 @@ def cmd_calibrate(args) -> int:
     for what, text in line_summary(cal.defect_rows, cal.defect_columns, p).items():
         print(f"  {what}: {text}")
     return 0
+
+
+def _kind_hints(args, kind: str) -> dict:
+    """``--dark-dataset`` / ``--flat-dataset`` over ``--dataset`` for one kind's files. Why: one
+    dataset for both could not calibrate TIFF darks beside NeXus HDF5 flats (the TIFF refused
+    it), nor two HDF5 files of different layouts (s49off), as register's --fixed-dataset."""
+    from radiokit.io import FormatError, sniff
+
+    hints, own = _raw_hints(args), getattr(args, f"{kind}_dataset", None)
+    if own:
+        return hints | {"dataset": own}
+    for path in getattr(args, kind) if hints.get("dataset") else ():
+        try:
+            fmt = sniff(path)
+        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
+            continue
+        if fmt != "hdf5":  # the reader's "dataset= is for HDF5 files" did not say what to give
+            raise FormatError(
+                path,
+                f"--dataset names the dataset of the darks and flats both, and this {kind} file is {fmt}, "
+                "not HDF5: name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
+            )
+    return hints
+
+
+def _calibration_from_files(args, th):
+    """The calibration from ``--dark`` and ``--flat`` frame files, each kind read with its own
+    hints (:func:`_kind_hints`)."""
+    from radiokit.calibrate import Calibration, FrameLevelError
+    from radiokit.io import FormatError
+
+    # a file given twice counted its frames twice: "3 darks" from 2, and the noise estimate
+    # and the zinger rejection fed one frame as two. One file in both lists is allowed: an
+    # experiment-style file holds darks and flats, told apart by image_key
+    _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
+    _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
+    hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
+    origins, bits, layouts, scalings = {"dark": [], "flat": []}, {}, {}, {}
+    _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
+    darks = _stack(args.dark, hints["dark"], 2, _progress(args), origins["dark"], bits, layouts, scalings)
+    flats = _stack(args.flat, hints["flat"], 1, _progress(args), origins["flat"], bits, layouts, scalings)
+    declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
+    if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
+        raise ValueError(
+            f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
+            f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
+        )
+    try:
+        cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
+    except FrameLevelError as exc:  # the stack's index, named as the file's frame
+        path, index = origins[exc.kind][exc.index]
+        raise FormatError(path, f"frame {index} ({exc})") from exc
+    except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
+        raise ValueError(
+            f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+        ) from exc
+    cal.provenance["dark_files"] = [str(p) for p in args.dark]
+    cal.provenance["flat_files"] = [str(p) for p in args.flat]
+    return cal
 
 
 # -- correct -----------------------------------------------------------------------------------
@@ -1314,6 +1348,10 @@ def _add_calibrate(sub):
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
     )
     _add_raw_hints(p)
+    g = next(g for g in p._action_groups if g.title == "HDF5 files of other layouts")
+    # one --dataset for both kinds could not read TIFF darks beside NeXus HDF5 flats (s49off)
+    g.add_argument("--dark-dataset", help="the dark files' HDF5 dataset (instead of --dataset for them)")
+    g.add_argument("--flat-dataset", help="the flat files' HDF5 dataset (instead of --dataset for them)")
     p.set_defaults(func=cmd_calibrate)
 
 

@@ -1524,3 +1524,47 @@ def test_register_says_in_one_line_that_a_field_went_non_finite(tmp_path, monkey
         res.stdout
     )
     assert not re.search(r"\bnan\b", res.stdout), res.stdout
+
+
+def test_calibrate_names_the_darks_and_the_flats_dataset_each(tmp_path):
+    """s49off: one --dataset for darks and flats both, so TIFF darks beside NeXus HDF5 flats (or
+    two HDF5 files of different layouts) could not be calibrated at all: the TIFF refused the
+    dataset. --dark-dataset and --flat-dataset name one kind's, as register's --fixed-dataset."""
+    import h5py
+    import tifffile
+
+    rng = np.random.default_rng(7)
+    darks, flats = rng.normal(100, 2, (3, 12, 14)), rng.normal(2000, 20, (3, 12, 14))
+    tifffile.imwrite(tmp_path / "darks.tif", darks.astype(np.uint16), photometric="minisblack")
+    with h5py.File(tmp_path / "flats.h5", "w") as h5:
+        h5["entry/data/data"] = flats.astype(np.uint16)
+    with h5py.File(tmp_path / "darks.h5", "w") as h5:
+        h5["scan/darks"] = darks.astype(np.uint16)
+    out = tmp_path / "cal.h5"
+    res = run_cli(
+        "calibrate",
+        "--dark",
+        tmp_path / "darks.tif",
+        "--flat",
+        tmp_path / "flats.h5",
+        "--dataset",
+        "entry/data/data",
+        "-o",
+        out,
+        "-q",
+    )
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr  # --dataset is both kinds'
+    assert "darks.tif" in res.stderr and "--dark-dataset" in res.stderr, res.stderr
+    for dark, extra in (
+        ("darks.tif", ("--flat-dataset", "entry/data/data")),
+        ("darks.h5", ("--dark-dataset", "scan/darks", "--flat-dataset", "entry/data/data")),
+        ("darks.h5", ("--dataset", "entry/data/data", "--dark-dataset", "scan/darks")),  # one kind's wins
+    ):
+        out.unlink(missing_ok=True)
+        res = run_cli("calibrate", "--dark", tmp_path / dark, "--flat", tmp_path / "flats.h5", *extra, "-o", out, "-q")
+        assert res.returncode == 0, (extra, res.stderr)
+        # c, the mean of flat - dark, says both kinds were read (their noise: 20 / sqrt(3 * 168))
+        cal_c = float(res.stdout.split("valid pixels = ")[1].split(" counts")[0])
+        assert abs(cal_c - (flats.mean() - darks.mean())) < 5, (extra, res.stdout)
+    helps = " ".join(run_cli("calibrate", "--help").stdout.split())
+    assert "--dark-dataset" in helps and "--flat-dataset" in helps, helps
