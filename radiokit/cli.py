@@ -930,12 +930,14 @@ def _write_register_outputs(args, record, draw) -> int | None:
     said "no partial output was left" (review s47rv3). A stop held over the renames is told once
     both are done, naming them; its exit status is returned (None: not stopped)."""
     from radiokit.interrupts import STOP_SIGNALS, exit_status, held, settle
-    from radiokit.io import OutputError, atomic_path, write_registration
+    from radiokit.io import OutputError, atomic_path, remove_replaced, write_registration
+    from radiokit.io._atomic import resolved
 
     inputs = [args.fixed, args.moving]
     with contextlib.ExitStack() as outputs:
         if args.png:
-            draw(outputs.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs)))
+            figure = outputs.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs))
+            draw(figure)
         tmp = outputs.enter_context(atomic_path(args.output, overwrite=args.overwrite, inputs=inputs))
         try:
             write_registration(tmp, record, overwrite=True, inputs=inputs)
@@ -944,6 +946,10 @@ def _write_register_outputs(args, record, draw) -> int | None:
             raise
         settle()  # a stop lost meanwhile: raised now, before anything is renamed
         renames = outputs.pop_all()
+        if args.png:  # run first (last in): the previous figure goes before the field is renamed
+            # a kill -9 between the renames then leaves a field without a figure, never the new
+            # field beside the previous run's figure (session 48's leftover)
+            renames.callback(remove_replaced, figure.parent / Path(resolved(args.png)).name, figure)
     done = False
     try:
         with held(*STOP_SIGNALS):
