@@ -1004,13 +1004,39 @@ def _levels_bar(args, options):
         yield {**options, "callback": level_done}
 
 
+#: the longest side an image is drawn at in register's figure: twice its panels' ~450 px
+_FIGURE_SIDE = 1000
+
+
+def _shrunk(image, step: int) -> np.ndarray:
+    """``image`` averaged over ``step`` x ``step`` blocks (float32; the last rows and columns
+    short of a block dropped), in bands of rows: no frame-sized temporary."""
+    if step == 1:
+        return np.asarray(image, np.float32)
+    rows, cols = image.shape[0] // step, image.shape[1] // step
+    out = np.empty((rows, cols), np.float32)
+    for r in range(0, rows, 64):
+        band = np.asarray(image[r * step : min(r + 64, rows) * step, : cols * step], np.float32)
+        out[r : r + 64] = band.reshape(-1, step, cols, step).mean(axis=(1, 3))
+    return out
+
+
 def _register_png(path, fixed, moving, registered, reg):
+    """The overlays before and after and det J, each averaged down to the figure's resolution
+    first. Why: drawn at full resolution, two RGB float64 overlays and their temporaries took 25
+    frames' worth (500 MB at 2240 x 2240) for panels of ~450 px, and doubled register's peak
+    beyond what its memory check counts (s49off)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from radiokit.register import jacobian_determinant
+
+    step = max(1, -(-max(fixed.shape) // _FIGURE_SIDE))
+    if min(fixed.shape) < 2 * step:  # a strip: averaged blocks would leave nothing to draw
+        step = 1
+    fixed, moving, registered = (_shrunk(a, step) for a in (fixed, moving, registered))
 
     def norm(a):
         lo, hi = np.percentile(a, [1, 99])
@@ -1021,7 +1047,8 @@ def _register_png(path, fixed, moving, registered, reg):
     ax[0].set_title("before: fixed magenta, moving green")
     ax[1].imshow(np.dstack([norm(fixed), norm(registered), norm(fixed)]))
     ax[1].set_title(f"after ({reg.method})")
-    im = ax[2].imshow(jacobian_determinant(reg.displacement), cmap="RdBu_r", vmin=0.8, vmax=1.2)
+    det = _shrunk(jacobian_determinant(reg.displacement), step)
+    im = ax[2].imshow(det, cmap="RdBu_r", vmin=0.8, vmax=1.2)
     ax[2].set_title(f"det J (folds: {reg.quality.folds})")
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:

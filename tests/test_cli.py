@@ -1568,3 +1568,37 @@ def test_calibrate_names_the_darks_and_the_flats_dataset_each(tmp_path):
         assert abs(cal_c - (flats.mean() - darks.mean())) < 5, (extra, res.stdout)
     helps = " ".join(run_cli("calibrate", "--help").stdout.split())
     assert "--dark-dataset" in helps and "--flat-dataset" in helps, helps
+
+
+def test_register_figure_takes_memory_of_its_own_pixels_not_the_images(tmp_path):
+    """s49off: `register --png` drew the full-resolution images: two RGB float64 overlays and
+    their temporaries, 25 frames' worth at 2240 x 2240 (500 MB for a 700 kB figure; +270 MB of
+    register's peak, beyond the 64 bytes a pixel its memory check counts). Shown in panels of
+    about 450 px, they are averaged to that first: the peak is then the field's det J (one frame
+    of float32) and a few frame-sized bands, whatever the images' size."""
+    import tracemalloc
+    import types
+
+    from PIL import Image
+
+    from radiokit import cli
+
+    rows, cols = 2048, 1536
+    rng = np.random.default_rng(3)
+    fixed = rng.random((rows, cols), dtype=np.float32)
+    field = np.zeros((2, rows, cols), np.float32)
+    reg = types.SimpleNamespace(method="rc", displacement=field, quality=types.SimpleNamespace(folds=0))
+    tiny = types.SimpleNamespace(method="rc", displacement=field[:, :64, :64], quality=reg.quality)
+    cli._register_png(tmp_path / "warm.png", fixed[:64, :64], fixed[:64, :64], fixed[:64, :64], tiny)  # imports
+    tracemalloc.start()
+    try:
+        cli._register_png(tmp_path / "f.png", fixed, fixed[::-1], fixed, reg)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    # det J (float32) and its bands, then what the figure's side bounds: the two RGB float64
+    # overlays and matplotlib's copies of them (was 338 MB, 27 frames' worth, here)
+    bound = 2 * fixed.nbytes + 6 * 8 * cli._FIGURE_SIDE**2
+    assert peak < bound, (peak / 1e6, bound / 1e6)
+    with Image.open(tmp_path / "f.png") as im:  # figsize 15 x 5 in at 100 dpi
+        assert im.size == (1500, 500), im.size
