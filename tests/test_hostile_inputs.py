@@ -670,6 +670,18 @@ def test_process_on_unusable_files(case, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.parametrize("shape, rois", [((3, 3), []), ((1, 40), ["--inclusion", "0", "1", "0", "9"])])
+def test_process_names_frames_too_small_to_register_before_any_work(shape, rois, tmp_path):
+    """s49off: a 3x3 experiment was told "too small to detect an inclusion in; pass ... --inclusion";
+    given the ROIs, "fixed image is too small to register", after calibrating and correcting. The
+    frames are judged first: register needs 8 px a side, ROIs or not."""
+    path = _experiment(tmp_path / "exp.h5", shape=shape)
+    res = run_cli("process", path, "-q", "-o", tmp_path / "res", *rois)
+    one_line_error(res, "exp.h5", f"{shape[0]}x{shape[1]}", "too small to register", "8 px")
+    assert "inclusion" not in res.stderr, res.stderr  # no advice that leads on to the next refusal
+    assert not (tmp_path / "res").exists()
+
+
 @pytest.mark.parametrize(
     "args, words",
     [
