@@ -1042,7 +1042,9 @@ def _register_png(path, fixed, moving, registered, reg):
         lo, hi = np.percentile(a, [1, 99])
         return np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
 
-    fig, ax = plt.subplots(1, 3, figsize=(15, 5))
+    # constrained, not tight_layout: that left the square panels as tall as the figure, their
+    # titles cut by its top edge
+    fig, ax = plt.subplots(1, 3, figsize=(15, 5), layout="constrained")
     ax[0].imshow(np.dstack([norm(fixed), norm(moving), norm(fixed)]))
     ax[0].set_title("before: fixed magenta, moving green")
     ax[1].imshow(np.dstack([norm(fixed), norm(registered), norm(fixed)]))
@@ -1053,7 +1055,6 @@ def _register_png(path, fixed, moving, registered, reg):
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:
         a.axis("off")
-    fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 

@@ -1602,3 +1602,30 @@ def test_register_figure_takes_memory_of_its_own_pixels_not_the_images(tmp_path)
     assert peak < bound, (peak / 1e6, bound / 1e6)
     with Image.open(tmp_path / "f.png") as im:  # figsize 15 x 5 in at 100 dpi
         assert im.size == (1500, 500), im.size
+
+
+def test_register_figure_titles_lie_inside_the_figure(tmp_path, monkeypatch):
+    """s49off: tight_layout left the overlays' titles ("before: fixed magenta, moving green")
+    cut by the figure's top edge, the square panels as tall as the figure; every title and the
+    colour bar lie inside it now."""
+    import types
+
+    import matplotlib.pyplot as plt
+
+    from radiokit import cli
+
+    boxes, close = [], plt.close
+
+    def measure_then_close(fig=None):  # the figure as saved, before close() drops its canvas
+        renderer = fig.canvas.get_renderer()
+        boxes.extend((ax.get_title(), ax.get_tightbbox(renderer), fig.bbox) for ax in fig.axes)
+        close(fig)
+
+    monkeypatch.setattr(plt, "close", measure_then_close)
+    image = np.random.default_rng(4).random((64, 64), dtype=np.float32)
+    field = np.zeros((2, 64, 64), np.float32)
+    reg = types.SimpleNamespace(method="rc", displacement=field, quality=types.SimpleNamespace(folds=0))
+    cli._register_png(tmp_path / "f.png", image, image[::-1], image, reg)
+    assert len(boxes) == 4  # three panels and the colour bar
+    for title, box, page in boxes:  # an axes' tight box holds its title
+        assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, (title, box, page)
