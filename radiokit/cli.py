@@ -842,19 +842,27 @@ def _register_inputs(args):
 #: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
 #: /usr/bin/time -v: rc --preset fast 51-53 bytes (476 MB at 2240 x 2240, 1.03 GB at 4000 x 4000,
 #: 3.58 GB at 8000 x 8000), the default preset 63 (562 MB, 1.25 GB): 14-16 times the two uint16
-#: images, which alone the reads held to the budget (8000 x 8000 under 200M peaked at 3.6 GB)
-REGISTER_BYTES_PER_PIXEL = 64
+#: images, which alone the reads held to the budget (8000 x 8000 under 200M peaked at 3.6 GB).
+#: Session 49 measured each method at 1120 and 2240 px a side over a 64 px pair's peak
+#: (benchmarks/README.md, "register's memory by method"): rc's default, ssd and ncc 84-93, tvl1,
+#: dis and farneback 65-68, mi 78 at 2240 (a ~300 MB part of it does not grow with the pixels); the
+#: methods above that have their own figure, the rest this one
+REGISTER_BYTES_PER_PIXEL = 96
+#: the methods whose peak is above REGISTER_BYTES_PER_PIXEL: ilk 142-144 bytes a pixel
+REGISTER_BYTES_PER_PIXEL_OF = {"ilk": 150}
 
 
 def _check_register_memory(args, fixed) -> None:
     """Refuse, before it starts, a registration whose working memory is over the budget."""
     from radiokit.io import BUDGET_ENV, human_bytes, memory_budget
 
-    need, limit = REGISTER_BYTES_PER_PIXEL * fixed.size, memory_budget()
+    per_pixel = REGISTER_BYTES_PER_PIXEL_OF.get(args.method, REGISTER_BYTES_PER_PIXEL)
+    need, limit = per_pixel * fixed.size, memory_budget()
     if need > limit:
         raise ValueError(
             f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
-            f"needs about {human_bytes(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
+            f"{'' if args.method in (None, 'rc') else f'with {args.method} '}"
+            f"needs about {human_bytes(need)} ({per_pixel} bytes a pixel), over the memory budget of "
             f"{human_bytes(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
             "images, cropped or binned beforehand (register has no crop of its own, and --roi narrows "
             "the score, not the images registered)"
