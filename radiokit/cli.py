@@ -388,7 +388,7 @@ def _progress(args) -> bool:
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
-def _judge_files(darks, flats, hints) -> None:
+def _judge_files(darks, flats, dark_hints, flat_hints) -> None:
     """Open every dark and flat file and judge it from its header (frames in it, one frame shape
     per list), before any frame is read: every bad file named, each on its own line
     (:func:`radiokit.io.judge_all`), each closed before the next opens. :func:`_stack` reads them
@@ -396,7 +396,7 @@ def _judge_files(darks, flats, hints) -> None:
     from radiokit.io import FormatError, InputErrors, judge_all
 
     errors = []
-    for paths in (darks, flats):
+    for paths, hints in ((darks, dark_hints), (flats, flat_hints)):
         shapes = []
 
         def judge(src, shapes=shapes):
@@ -511,8 +511,8 @@ def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
 
 
 def cmd_calibrate(args) -> int:
-    from radiokit.calibrate import Calibration, FrameLevelError, line_summary
-    from radiokit.io import FormatError, atomic_path, check_output
+    from radiokit.calibrate import Calibration, line_summary
+    from radiokit.io import atomic_path, check_output
 
     th = _parse_thresholds(args.threshold)
     inputs = [p for p in [args.experiment, *(args.dark or ()), *(args.flat or ())] if p]
@@ -527,32 +527,7 @@ def cmd_calibrate(args) -> int:
     else:
         if not (args.dark and args.flat):
             raise ValueError("give --dark FILES and --flat FILES, or --experiment FILE")
-        # a file given twice counted its frames twice: "3 darks" from 2, and the noise estimate
-        # and the zinger rejection fed one frame as two. One file in both lists is allowed: an
-        # experiment-style file holds darks and flats, told apart by image_key
-        _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
-        _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-        hints, origins, bits, layouts, scalings = _raw_hints(args), {"dark": [], "flat": []}, {}, {}, {}
-        _judge_files(args.dark, args.flat, hints)
-        darks = _stack(args.dark, hints, 2, _progress(args), origins["dark"], bits, layouts, scalings)
-        flats = _stack(args.flat, hints, 1, _progress(args), origins["flat"], bits, layouts, scalings)
-        declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
-        if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
-            raise ValueError(
-                f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
-                f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
-            )
-        try:
-            cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
-        except FrameLevelError as exc:  # the stack's index, named as the file's frame
-            path, index = origins[exc.kind][exc.index]
-            raise FormatError(path, f"frame {index} ({exc})") from exc
-        except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
-            raise ValueError(
-                f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
-            ) from exc
-        cal.provenance["dark_files"] = [str(p) for p in args.dark]
-        cal.provenance["flat_files"] = [str(p) for p in args.flat]
+        cal = _calibration_from_files(args, th)
     # built in memory first: its size is then known, and a disk or file-size limit too small for
     # it is refused before the first byte (libhdf5 failing mid-write has crashed the interpreter)
     image = io.BytesIO()
@@ -570,6 +545,65 @@ def cmd_calibrate(args) -> int:
     for what, text in line_summary(cal.defect_rows, cal.defect_columns, p).items():
         print(f"  {what}: {text}")
     return 0
+
+
+def _kind_hints(args, kind: str) -> dict:
+    """``--dark-dataset`` / ``--flat-dataset`` over ``--dataset`` for one kind's files. Why: one
+    dataset for both could not calibrate TIFF darks beside NeXus HDF5 flats (the TIFF refused
+    it), nor two HDF5 files of different layouts (s49off), as register's --fixed-dataset."""
+    from radiokit.io import FormatError, sniff
+
+    hints, own = _raw_hints(args), getattr(args, f"{kind}_dataset", None)
+    if own:
+        return hints | {"dataset": own}
+    for path in getattr(args, kind) if hints.get("dataset") else ():
+        try:
+            fmt = sniff(path)
+        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
+            continue
+        if fmt != "hdf5":  # the reader's "dataset= is for HDF5 files" did not say what to give
+            raise FormatError(
+                path,
+                f"--dataset names the dataset of the darks and flats both, and this {kind} file is {fmt}, "
+                "not HDF5: name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
+            )
+    return hints
+
+
+def _calibration_from_files(args, th):
+    """The calibration from ``--dark`` and ``--flat`` frame files, each kind read with its own
+    hints (:func:`_kind_hints`)."""
+    from radiokit.calibrate import Calibration, FrameLevelError
+    from radiokit.io import FormatError
+
+    # a file given twice counted its frames twice: "3 darks" from 2, and the noise estimate
+    # and the zinger rejection fed one frame as two. One file in both lists is allowed: an
+    # experiment-style file holds darks and flats, told apart by image_key
+    _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
+    _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
+    hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
+    origins, bits, layouts, scalings = {"dark": [], "flat": []}, {}, {}, {}
+    _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
+    darks = _stack(args.dark, hints["dark"], 2, _progress(args), origins["dark"], bits, layouts, scalings)
+    flats = _stack(args.flat, hints["flat"], 1, _progress(args), origins["flat"], bits, layouts, scalings)
+    declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
+    if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
+        raise ValueError(
+            f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
+            f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
+        )
+    try:
+        cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
+    except FrameLevelError as exc:  # the stack's index, named as the file's frame
+        path, index = origins[exc.kind][exc.index]
+        raise FormatError(path, f"frame {index} ({exc})") from exc
+    except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
+        raise ValueError(
+            f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+        ) from exc
+    cal.provenance["dark_files"] = [str(p) for p in args.dark]
+    cal.provenance["flat_files"] = [str(p) for p in args.flat]
+    return cal
 
 
 # -- correct -----------------------------------------------------------------------------------
@@ -808,19 +842,27 @@ def _register_inputs(args):
 #: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
 #: /usr/bin/time -v: rc --preset fast 51-53 bytes (476 MB at 2240 x 2240, 1.03 GB at 4000 x 4000,
 #: 3.58 GB at 8000 x 8000), the default preset 63 (562 MB, 1.25 GB): 14-16 times the two uint16
-#: images, which alone the reads held to the budget (8000 x 8000 under 200M peaked at 3.6 GB)
-REGISTER_BYTES_PER_PIXEL = 64
+#: images, which alone the reads held to the budget (8000 x 8000 under 200M peaked at 3.6 GB).
+#: Session 49 measured each method at 1120 and 2240 px a side over a 64 px pair's peak
+#: (benchmarks/README.md, "register's memory by method"): rc's default, ssd and ncc 84-93, tvl1,
+#: dis and farneback 65-68, mi 78 at 2240 (a ~300 MB part of it does not grow with the pixels); the
+#: methods above that have their own figure, the rest this one
+REGISTER_BYTES_PER_PIXEL = 96
+#: the methods whose peak is above REGISTER_BYTES_PER_PIXEL: ilk 142-144 bytes a pixel
+REGISTER_BYTES_PER_PIXEL_OF = {"ilk": 150}
 
 
 def _check_register_memory(args, fixed) -> None:
     """Refuse, before it starts, a registration whose working memory is over the budget."""
     from radiokit.io import BUDGET_ENV, human_bytes, memory_budget
 
-    need, limit = REGISTER_BYTES_PER_PIXEL * fixed.size, memory_budget()
+    per_pixel = REGISTER_BYTES_PER_PIXEL_OF.get(args.method, REGISTER_BYTES_PER_PIXEL)
+    need, limit = per_pixel * fixed.size, memory_budget()
     if need > limit:
         raise ValueError(
             f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
-            f"needs about {human_bytes(need)} ({REGISTER_BYTES_PER_PIXEL} bytes a pixel), over the memory budget of "
+            f"{'' if args.method in (None, 'rc') else f'with {args.method} '}"
+            f"needs about {human_bytes(need)} ({per_pixel} bytes a pixel), over the memory budget of "
             f"{human_bytes(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
             "images, cropped or binned beforehand (register has no crop of its own, and --roi narrows "
             "the score, not the images registered)"
@@ -896,12 +938,14 @@ def _write_register_outputs(args, record, draw) -> int | None:
     said "no partial output was left" (review s47rv3). A stop held over the renames is told once
     both are done, naming them; its exit status is returned (None: not stopped)."""
     from radiokit.interrupts import STOP_SIGNALS, exit_status, held, settle
-    from radiokit.io import OutputError, atomic_path, write_registration
+    from radiokit.io import OutputError, atomic_path, remove_replaced, write_registration
+    from radiokit.io._atomic import resolved
 
     inputs = [args.fixed, args.moving]
     with contextlib.ExitStack() as outputs:
         if args.png:
-            draw(outputs.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs)))
+            figure = outputs.enter_context(atomic_path(args.png, overwrite=args.overwrite, inputs=inputs))
+            draw(figure)
         tmp = outputs.enter_context(atomic_path(args.output, overwrite=args.overwrite, inputs=inputs))
         try:
             write_registration(tmp, record, overwrite=True, inputs=inputs)
@@ -910,6 +954,10 @@ def _write_register_outputs(args, record, draw) -> int | None:
             raise
         settle()  # a stop lost meanwhile: raised now, before anything is renamed
         renames = outputs.pop_all()
+        if args.png:  # run first (last in): the previous figure goes before the field is renamed
+            # a kill -9 between the renames then leaves a field without a figure, never the new
+            # field beside the previous run's figure (session 48's leftover)
+            renames.callback(remove_replaced, figure.parent / Path(resolved(args.png)).name, figure)
     done = False
     try:
         with held(*STOP_SIGNALS):
@@ -964,7 +1012,28 @@ def _levels_bar(args, options):
         yield {**options, "callback": level_done}
 
 
+#: the longest side an image is drawn at in register's figure: twice its panels' ~450 px
+_FIGURE_SIDE = 1000
+
+
+def _shrunk(image, step: int) -> np.ndarray:
+    """``image`` averaged over ``step`` x ``step`` blocks (float32; the last rows and columns
+    short of a block dropped), in bands of rows: no frame-sized temporary."""
+    if step == 1:
+        return np.asarray(image, np.float32)
+    rows, cols = image.shape[0] // step, image.shape[1] // step
+    out = np.empty((rows, cols), np.float32)
+    for r in range(0, rows, 64):
+        band = np.asarray(image[r * step : min(r + 64, rows) * step, : cols * step], np.float32)
+        out[r : r + 64] = band.reshape(-1, step, cols, step).mean(axis=(1, 3))
+    return out
+
+
 def _register_png(path, fixed, moving, registered, reg):
+    """The overlays before and after and det J, each averaged down to the figure's resolution
+    first. Why: drawn at full resolution, two RGB float64 overlays and their temporaries took 25
+    frames' worth (500 MB at 2240 x 2240) for panels of ~450 px, and doubled register's peak
+    beyond what its memory check counts (s49off)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -972,21 +1041,28 @@ def _register_png(path, fixed, moving, registered, reg):
 
     from radiokit.register import jacobian_determinant
 
+    step = max(1, -(-max(fixed.shape) // _FIGURE_SIDE))
+    if min(fixed.shape) < 2 * step:  # a strip: averaged blocks would leave nothing to draw
+        step = 1
+    fixed, moving, registered = (_shrunk(a, step) for a in (fixed, moving, registered))
+
     def norm(a):
         lo, hi = np.percentile(a, [1, 99])
         return np.clip((a - lo) / max(hi - lo, 1e-12), 0, 1)
 
-    fig, ax = plt.subplots(1, 3, figsize=(15, 5))
+    # constrained, not tight_layout: that left the square panels as tall as the figure, their
+    # titles cut by its top edge
+    fig, ax = plt.subplots(1, 3, figsize=(15, 5), layout="constrained")
     ax[0].imshow(np.dstack([norm(fixed), norm(moving), norm(fixed)]))
     ax[0].set_title("before: fixed magenta, moving green")
     ax[1].imshow(np.dstack([norm(fixed), norm(registered), norm(fixed)]))
     ax[1].set_title(f"after ({reg.method})")
-    im = ax[2].imshow(jacobian_determinant(reg.displacement), cmap="RdBu_r", vmin=0.8, vmax=1.2)
+    det = _shrunk(jacobian_determinant(reg.displacement), step)
+    im = ax[2].imshow(det, cmap="RdBu_r", vmin=0.8, vmax=1.2)
     ax[2].set_title(f"det J (folds: {reg.quality.folds})")
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     for a in ax:
         a.axis("off")
-    fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
@@ -1314,6 +1390,10 @@ def _add_calibrate(sub):
         "-q", "--quiet", action="store_true", help="no progress bars (none either when stderr is not a terminal)"
     )
     _add_raw_hints(p)
+    g = next(g for g in p._action_groups if g.title == "HDF5 files of other layouts")
+    # one --dataset for both kinds could not read TIFF darks beside NeXus HDF5 flats (s49off)
+    g.add_argument("--dark-dataset", help="the dark files' HDF5 dataset (instead of --dataset for them)")
+    g.add_argument("--flat-dataset", help="the flat files' HDF5 dataset (instead of --dataset for them)")
     p.set_defaults(func=cmd_calibrate)
 
 

@@ -1215,6 +1215,7 @@ def _check_inputs(path: Path, control) -> None:
                     "radiokit acquire or radiokit.io.ExperimentWriter write them)",
                 )
             _check_square_pixels(p, src.meta)
+            _check_registrable(p, src.frame_shape)
             shapes.append(src.frame_shape)
             metas.append(src.meta)
     if len(shapes) == 2 and shapes[0] != shapes[1]:
@@ -1225,6 +1226,17 @@ def _check_inputs(path: Path, control) -> None:
         )
     if len(metas) == 2:
         check_same_pixel_size(control, metas[1], path, metas[0], "the control must be imaged as the experiment")
+
+
+def _check_registrable(path, shape) -> None:
+    """Frames register() can take. Why: a 3x3 experiment was told to pass its ROIs (no inclusion
+    detectable in it), and given them, calibrated and corrected before "too small to register"."""
+    from radiokit.register import MIN_SIDE
+
+    if min(shape) < MIN_SIDE:
+        raise FormatError(
+            path, f"frames are {shape[0]}x{shape[1]}: too small to register ({MIN_SIDE} px a side at least)"
+        )
 
 
 def _timed(timings, name, fn, *args, **kwargs):

@@ -1565,3 +1565,108 @@ def test_register_says_in_one_line_that_a_field_went_non_finite(tmp_path, monkey
         res.stdout
     )
     assert not re.search(r"\bnan\b", res.stdout), res.stdout
+
+
+def test_calibrate_names_the_darks_and_the_flats_dataset_each(tmp_path):
+    """s49off: one --dataset for darks and flats both, so TIFF darks beside NeXus HDF5 flats (or
+    two HDF5 files of different layouts) could not be calibrated at all: the TIFF refused the
+    dataset. --dark-dataset and --flat-dataset name one kind's, as register's --fixed-dataset."""
+    import h5py
+    import tifffile
+
+    rng = np.random.default_rng(7)
+    darks, flats = rng.normal(100, 2, (3, 12, 14)), rng.normal(2000, 20, (3, 12, 14))
+    tifffile.imwrite(tmp_path / "darks.tif", darks.astype(np.uint16), photometric="minisblack")
+    with h5py.File(tmp_path / "flats.h5", "w") as h5:
+        h5["entry/data/data"] = flats.astype(np.uint16)
+    with h5py.File(tmp_path / "darks.h5", "w") as h5:
+        h5["scan/darks"] = darks.astype(np.uint16)
+    out = tmp_path / "cal.h5"
+    res = run_cli(
+        "calibrate",
+        "--dark",
+        tmp_path / "darks.tif",
+        "--flat",
+        tmp_path / "flats.h5",
+        "--dataset",
+        "entry/data/data",
+        "-o",
+        out,
+        "-q",
+    )
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr  # --dataset is both kinds'
+    assert "darks.tif" in res.stderr and "--dark-dataset" in res.stderr, res.stderr
+    for dark, extra in (
+        ("darks.tif", ("--flat-dataset", "entry/data/data")),
+        ("darks.h5", ("--dark-dataset", "scan/darks", "--flat-dataset", "entry/data/data")),
+        ("darks.h5", ("--dataset", "entry/data/data", "--dark-dataset", "scan/darks")),  # one kind's wins
+    ):
+        out.unlink(missing_ok=True)
+        res = run_cli("calibrate", "--dark", tmp_path / dark, "--flat", tmp_path / "flats.h5", *extra, "-o", out, "-q")
+        assert res.returncode == 0, (extra, res.stderr)
+        # c, the mean of flat - dark, says both kinds were read (their noise: 20 / sqrt(3 * 168))
+        cal_c = float(res.stdout.split("valid pixels = ")[1].split(" counts")[0])
+        assert abs(cal_c - (flats.mean() - darks.mean())) < 5, (extra, res.stdout)
+    helps = " ".join(run_cli("calibrate", "--help").stdout.split())
+    assert "--dark-dataset" in helps and "--flat-dataset" in helps, helps
+
+
+def test_register_figure_takes_memory_of_its_own_pixels_not_the_images(tmp_path):
+    """s49off: `register --png` drew the full-resolution images: two RGB float64 overlays and
+    their temporaries, 25 frames' worth at 2240 x 2240 (500 MB for a 700 kB figure; +270 MB of
+    register's peak, beyond the 64 bytes a pixel its memory check counts). Shown in panels of
+    about 450 px, they are averaged to that first: the peak is then the field's det J (one frame
+    of float32) and a few frame-sized bands, whatever the images' size."""
+    import tracemalloc
+    import types
+
+    from PIL import Image
+
+    from radiokit import cli
+
+    rows, cols = 2048, 1536
+    rng = np.random.default_rng(3)
+    fixed = rng.random((rows, cols), dtype=np.float32)
+    field = np.zeros((2, rows, cols), np.float32)
+    reg = types.SimpleNamespace(method="rc", displacement=field, quality=types.SimpleNamespace(folds=0))
+    tiny = types.SimpleNamespace(method="rc", displacement=field[:, :64, :64], quality=reg.quality)
+    cli._register_png(tmp_path / "warm.png", fixed[:64, :64], fixed[:64, :64], fixed[:64, :64], tiny)  # imports
+    tracemalloc.start()
+    try:
+        cli._register_png(tmp_path / "f.png", fixed, fixed[::-1], fixed, reg)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    # det J (float32) and its bands, then what the figure's side bounds: the two RGB float64
+    # overlays and matplotlib's copies of them (was 338 MB, 27 frames' worth, here)
+    bound = 2 * fixed.nbytes + 6 * 8 * cli._FIGURE_SIDE**2
+    assert peak < bound, (peak / 1e6, bound / 1e6)
+    with Image.open(tmp_path / "f.png") as im:  # figsize 15 x 5 in at 100 dpi
+        assert im.size == (1500, 500), im.size
+
+
+def test_register_figure_titles_lie_inside_the_figure(tmp_path, monkeypatch):
+    """s49off: tight_layout left the overlays' titles ("before: fixed magenta, moving green")
+    cut by the figure's top edge, the square panels as tall as the figure; every title and the
+    colour bar lie inside it now."""
+    import types
+
+    import matplotlib.pyplot as plt
+
+    from radiokit import cli
+
+    boxes, close = [], plt.close
+
+    def measure_then_close(fig=None):  # the figure as saved, before close() drops its canvas
+        renderer = fig.canvas.get_renderer()
+        boxes.extend((ax.get_title(), ax.get_tightbbox(renderer), fig.bbox) for ax in fig.axes)
+        close(fig)
+
+    monkeypatch.setattr(plt, "close", measure_then_close)
+    image = np.random.default_rng(4).random((64, 64), dtype=np.float32)
+    field = np.zeros((2, 64, 64), np.float32)
+    reg = types.SimpleNamespace(method="rc", displacement=field, quality=types.SimpleNamespace(folds=0))
+    cli._register_png(tmp_path / "f.png", image, image[::-1], image, reg)
+    assert len(boxes) == 4  # three panels and the colour bar
+    for title, box, page in boxes:  # an axes' tight box holds its title
+        assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, (title, box, page)

@@ -1221,3 +1221,22 @@ def test_correct_reads_more_files_than_may_be_open_at_once(tmp_path):
     assert out.shape == (n, *shape)
     expected = -np.log((raw - 100) / 3000.0)
     np.testing.assert_allclose(out, np.broadcast_to(expected[:, None, None], out.shape), rtol=0, atol=1e-6)
+
+
+def test_register_counts_the_memory_of_the_method_it_runs(tmp_path):
+    """s49off: register's memory check counted 64 bytes a pixel for every method, measured on rc
+    --preset fast; at 1120 and 2240 px a side ilk peaked at 142-144 bytes a pixel, rc's default at
+    84-93 (benchmarks/README.md, "register's memory by method"). A budget that rc's run fits and
+    ilk's does not refuses ilk before it begins."""
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        tifffile.imwrite(tmp_path / f"{name}.tif", rng.random((64, 64), np.float32))
+    budget = {"RADIOKIT_MEMORY_BUDGET": str(120 * 64 * 64)}  # over rc's need, under ilk's
+    given = (tmp_path / "a.tif", tmp_path / "b.tif", "-q", "-o")
+    res = run_cli("register", *given, tmp_path / "ilk.h5", "--method", "ilk", env=budget)
+    one_line_error(res, "64x64", "with ilk", "bytes a pixel", "over the memory budget")
+    assert not (tmp_path / "ilk.h5").exists()
+    res = run_cli("register", *given, tmp_path / "rc.h5", "--preset", "fast", env=budget)
+    assert "memory budget" not in res.stderr and res.returncode in (0, 1), res.stderr

@@ -175,6 +175,33 @@ def test_register_stopped_between_its_two_renames_leaves_a_pair(sig, images, tmp
     no_temporaries(tmp_path)
 
 
+def test_register_killed_between_its_two_renames_never_leaves_the_previous_figure(images, tmp_path, monkeypatch):
+    """A kill -9 (no handler runs) landing after reg.h5 was renamed into place and before reg.png
+    was left the new field beside the previous run's figure, two runs' outputs side by side
+    (session 48's leftover). The previous figure goes before the field is renamed: a kill at any
+    point leaves the previous pair, the previous field without a figure, the new field without
+    one, or the new pair. The state at the kill's moment is seen as the field's rename ends."""
+    fixed, moving = images
+    field, figure = tmp_path / "reg.h5", tmp_path / "reg.png"
+    args = ["register", fixed, moving, "-o", field, "--png", figure, "--overwrite"]
+    assert run_cli(*args).returncode in (0, 1)
+    figure.chmod(0o640)  # a mode its owner chose, which the new figure keeps
+    before = {p: p.stat().st_ino for p in (field, figure)}
+    seen, real_replace = [], os.replace
+
+    def replace_and_look(src, dst, *rest, **kw):
+        real_replace(src, dst, *rest, **kw)
+        if Path(dst) == field:  # what a kill -9 here would leave
+            seen.append(figure.stat().st_ino if figure.exists() else None)
+
+    monkeypatch.setattr(os, "replace", replace_and_look)
+    assert run_cli(*args).returncode in (0, 1)
+    assert seen == [None], (seen, before[figure])  # was: the previous figure's inode
+    assert all(p.stat().st_ino != before[p] for p in before)
+    assert stat.S_IMODE(figure.stat().st_mode) == 0o640
+    no_temporaries(tmp_path)
+
+
 @pytest.mark.parametrize("cmd", ["calibrate", "correct", "correct-tiff", "register", "register-png"])
 def test_a_read_only_output_is_refused_even_with_overwrite(cmd, experiment, images, tmp_path):
     """A file its owner made read-only (chmod a-w) was replaced by --overwrite, as a writable

@@ -670,6 +670,18 @@ def test_process_on_unusable_files(case, tmp_path):
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.parametrize("shape, rois", [((3, 3), []), ((1, 40), ["--inclusion", "0", "1", "0", "9"])])
+def test_process_names_frames_too_small_to_register_before_any_work(shape, rois, tmp_path):
+    """s49off: a 3x3 experiment was told "too small to detect an inclusion in; pass ... --inclusion";
+    given the ROIs, "fixed image is too small to register", after calibrating and correcting. The
+    frames are judged first: register needs 8 px a side, ROIs or not."""
+    path = _experiment(tmp_path / "exp.h5", shape=shape)
+    res = run_cli("process", path, "-q", "-o", tmp_path / "res", *rois)
+    one_line_error(res, "exp.h5", f"{shape[0]}x{shape[1]}", "too small to register", "8 px")
+    assert "inclusion" not in res.stderr, res.stderr  # no advice that leads on to the next refusal
+    assert not (tmp_path / "res").exists()
+
+
 @pytest.mark.parametrize(
     "args, words",
     [
@@ -2306,8 +2318,12 @@ def test_register_is_refused_when_its_working_memory_is_over_the_budget(tmp_path
     for name in ("a", "b"):
         tifffile.imwrite(tmp_path / f"{name}.tif", rng.normal(1000, 50, (256, 256)).astype(np.uint16))
     args = ("register", tmp_path / "a.tif", tmp_path / "b.tif", "--preset", "fast", "-o", tmp_path / "r.h5")
+    from radiokit.cli import REGISTER_BYTES_PER_PIXEL
+    from radiokit.io import human_bytes
+
     res = run_cli(*args, env={"RADIOKIT_MEMORY_BUDGET": "2MiB"})
-    line = one_line_error(res, "radiokit register: ", "a.tif", "b.tif", "two 256x256 images", "4.0 MiB", "2.0 MiB")
+    need = human_bytes(REGISTER_BYTES_PER_PIXEL * 256 * 256)  # rc's bytes a pixel (benchmarks/README.md)
+    line = one_line_error(res, "radiokit register: ", "a.tif", "b.tif", "two 256x256 images", need, "2.0 MiB")
     # what works: register has no crop option, and --roi narrows the score, not the memory
     assert "register a cropped region" not in line and "cropped or binned beforehand" in line, line
     assert not (tmp_path / "r.h5").exists()

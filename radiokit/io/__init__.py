@@ -28,6 +28,7 @@ from radiokit.io._atomic import (
     missing_folders,
     recover_interrupted,
     remove_empty_folders,
+    remove_replaced,
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, human_bytes, memory_budget, parse_size
 from radiokit.io._experiment import (
@@ -79,6 +80,7 @@ __all__ = [
     "atomic_path",
     "atomic_dir",
     "atomic_h5",
+    "remove_replaced",
     "check_output",
     "check_free_space",
     "OutputError",

@@ -863,6 +863,21 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         raise
 
 
+def remove_replaced(path, tmp) -> None:
+    """Remove ``path`` now, ahead of the rename of ``tmp`` onto it, whose mode it gives ``tmp``
+    first (as :func:`atomic_path` does when it replaces it).
+
+    Why: two outputs of one run renamed one after the other (a field and its figure) cannot be
+    renamed as one; a kill -9 between the renames, which no handler sees, left the new first
+    beside the previous run's second. With the second removed before the first is renamed, a
+    kill leaves one run's outputs, or the first without the second, never two runs' mixed."""
+    path = Path(path)
+    if os.path.lexists(path):
+        _keep_mode(Path(tmp), path)
+        _remove(path)
+        _fsync(path.parent)
+
+
 def missing_folders(folder: Path) -> list[Path]:
     """``folder`` and those of its parents that do not exist yet, deepest first: what making it
     creates, and what a failed run removes again (:func:`remove_empty_folders`)."""

@@ -51,7 +51,11 @@ __all__ = [
     "roi_observed",
     "load_methods",
     "check_options",
+    "MIN_SIDE",
 ]
+
+#: the least side, in pixels, of an image register() takes (OpenCV asserted on smaller pairs)
+MIN_SIDE = 8
 
 #: the methods on the B-spline transform, which take rc's presets (``preset=``)
 BSPLINE_METHODS = ("rc", "ssd", "ncc", "mi")
@@ -248,7 +252,7 @@ def _check(fixed, moving, mask):
             raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}{image_hint(given, a.shape)}")
         if a.dtype.kind not in "uif":
             raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
-        if min(a.shape) < 8:
+        if min(a.shape) < MIN_SIDE:
             raise ValueError(f"{name} image is too small to register: {a.shape}")
     if f.shape != m.shape:
         raise ValueError(f"fixed {f.shape} and moving {m.shape} images differ in shape")
