@@ -957,7 +957,15 @@ def _write_register_outputs(args, record, draw) -> int | None:
         if args.png:  # run first (last in): the previous figure goes before the field is renamed
             # a kill -9 between the renames then leaves a field without a figure, never the new
             # field beside the previous run's figure (session 48's leftover)
-            renames.callback(remove_replaced, figure.parent / Path(resolved(args.png)).name, figure)
+            # (checked as the renames check: what appeared at either name meanwhile is kept, s49rv)
+            renames.callback(
+                remove_replaced,
+                figure.parent / Path(resolved(args.png)).name,
+                figure,
+                overwrite=args.overwrite,
+                inputs=inputs,
+                then=[tmp.parent / Path(resolved(args.output)).name],
+            )
     done = False
     try:
         with held(*STOP_SIGNALS):
