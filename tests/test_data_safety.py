@@ -2478,6 +2478,7 @@ def test_register_never_removes_what_appeared_at_the_figure_name_during_the_run(
     res = run_cli(*args)
     assert (figure / "notes.txt").read_text() == "kept"
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and str(figure) in res.stderr, res.stderr
+    assert overwrite or "appeared during the run" in res.stderr, res.stderr
     no_temporaries(tmp_path)
 
 

@@ -877,11 +877,12 @@ def remove_replaced(path, tmp, *, overwrite=False, inputs=(), then=()) -> None:
     folder with all it held, --overwrite or not; and a refused first output cost the previous
     second for nothing."""
     path = Path(path)
-    for other in then:
+    for other in (*then, path):
         if os.path.lexists(other):  # perhaps made during the run: is it replaceable?
+            if not overwrite:  # (checked free at the start)
+                raise OutputAppearedError(Path(other))
             _check_output(Path(other), overwrite, inputs, False)
     if os.path.lexists(path):
-        _check_output(path, overwrite, inputs, False)
         _keep_mode(Path(tmp), path)
         _remove(path)
         _fsync(path.parent)
