@@ -520,6 +520,11 @@ def cmd_calibrate(args) -> int:
     _hdf5_name(args.output)
     if args.experiment and (args.dark or args.flat):  # the files given were silently not used
         raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
+    kind = next((o for o in ("dark", "flat") if args.experiment and getattr(args, f"{o}_dataset", None)), None)
+    if kind:  # so was the dataset named for them (s49rv)
+        raise ValueError(
+            f"--{kind}-dataset names the --{kind} files' dataset: give --dark and --flat files with it, not --experiment"
+        )
     if args.experiment:
         cal = Calibration.from_experiment(
             args.experiment, allow_external=args.allow_external, progress=_progress(args), **th
