@@ -520,6 +520,11 @@ def cmd_calibrate(args) -> int:
     _hdf5_name(args.output)
     if args.experiment and (args.dark or args.flat):  # the files given were silently not used
         raise ValueError("give --experiment FILE, or --dark FILES and --flat FILES, not both")
+    kind = next((o for o in ("dark", "flat") if args.experiment and getattr(args, f"{o}_dataset", None)), None)
+    if kind:  # so was the dataset named for them (s49rv)
+        raise ValueError(
+            f"--{kind}-dataset names the --{kind} files' dataset: give --dark and --flat files with it, not --experiment"
+        )
     if args.experiment:
         cal = Calibration.from_experiment(
             args.experiment, allow_external=args.allow_external, progress=_progress(args), **th
@@ -957,7 +962,15 @@ def _write_register_outputs(args, record, draw) -> int | None:
         if args.png:  # run first (last in): the previous figure goes before the field is renamed
             # a kill -9 between the renames then leaves a field without a figure, never the new
             # field beside the previous run's figure (session 48's leftover)
-            renames.callback(remove_replaced, figure.parent / Path(resolved(args.png)).name, figure)
+            # (checked as the renames check: what appeared at either name meanwhile is kept, s49rv)
+            renames.callback(
+                remove_replaced,
+                figure.parent / Path(resolved(args.png)).name,
+                figure,
+                overwrite=args.overwrite,
+                inputs=inputs,
+                then=[tmp.parent / Path(resolved(args.output)).name],
+            )
     done = False
     try:
         with held(*STOP_SIGNALS):

@@ -2451,3 +2451,58 @@ def test_an_output_under_a_dangling_symlink_is_not_said_to_be_under_a_file(exper
     res = run_cli("calibrate", "--experiment", experiment, "-o", tmp_path / "dangling" / "cal.h5")
     line = one_line_error(res, "dangling", "does not exist")
     assert "is a file" not in line
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_register_never_removes_what_appeared_at_the_figure_name_during_the_run(
+    overwrite, images, tmp_path, monkeypatch
+):
+    """s49rv: the previous figure, removed before the field's rename (remove_replaced), was removed
+    whatever stood at --png's name by then: without --overwrite a file made there during the run
+    (another run's figure) was deleted, and with it a folder and all it held; with --overwrite a
+    folder too, which the rename's own check refused before. Kept now: the command ends on its one
+    error line naming the figure, and what appeared there is as it was."""
+    from radiokit import cli
+
+    fixed, moving = images
+    field, figure = tmp_path / "reg.h5", tmp_path / "reg.png"
+    args = ["register", fixed, moving, "-o", field, "--png", figure] + (["--overwrite"] if overwrite else [])
+    draw = cli._register_png
+
+    def another_writes_there(path, *rest):  # while this run draws, something takes the figure's name
+        figure.mkdir()
+        (figure / "notes.txt").write_text("kept")
+        draw(path, *rest)
+
+    monkeypatch.setattr(cli, "_register_png", another_writes_there)
+    res = run_cli(*args)
+    assert (figure / "notes.txt").read_text() == "kept"
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and str(figure) in res.stderr, res.stderr
+    assert overwrite or "appeared during the run" in res.stderr, res.stderr
+    no_temporaries(tmp_path)
+
+
+def test_register_whose_field_is_refused_at_its_rename_keeps_the_previous_figure(images, tmp_path, monkeypatch):
+    """s49rv: with --overwrite, the previous figure went before the field's rename, which then
+    refused what stood at -o's name by then (a folder made there during the run): the run ended
+    on its error with the previous field and no figure, the user's figure lost for nothing. Both
+    names are checked before anything is removed: the previous pair stays as it was."""
+    import radiokit.io
+
+    fixed, moving = images
+    field, figure = tmp_path / "reg.h5", tmp_path / "reg.png"
+    args = ["register", fixed, moving, "-o", field, "--png", figure, "--overwrite"]
+    assert run_cli(*args).returncode in (0, 1)
+    previous_figure = figure.read_bytes()
+    write = radiokit.io.write_registration
+
+    def folder_at_the_field(*args, **kwargs):  # while the field is written, after both names were checked
+        field.unlink()
+        field.mkdir()
+        write(*args, **kwargs)
+
+    monkeypatch.setattr(radiokit.io, "write_registration", folder_at_the_field)
+    res = run_cli(*args)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and str(field) in res.stderr, res.stderr
+    assert figure.read_bytes() == previous_figure and field.is_dir()
+    no_temporaries(tmp_path)

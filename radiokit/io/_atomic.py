@@ -863,15 +863,25 @@ def atomic_path(path, *, overwrite=False, inputs=(), size_hint=None):
         raise
 
 
-def remove_replaced(path, tmp) -> None:
+def remove_replaced(path, tmp, *, overwrite=False, inputs=(), then=()) -> None:
     """Remove ``path`` now, ahead of the rename of ``tmp`` onto it, whose mode it gives ``tmp``
-    first (as :func:`atomic_path` does when it replaces it).
+    first (as :func:`atomic_path` does when it replaces it). What is there is checked first as
+    that rename checks it (:func:`check_output`: ``overwrite``, ``inputs``), and so are ``then``,
+    the outputs renamed between this removal and that rename: a refusal removes nothing.
 
     Why: two outputs of one run renamed one after the other (a field and its figure) cannot be
     renamed as one; a kill -9 between the renames, which no handler sees, left the new first
     beside the previous run's second. With the second removed before the first is renamed, a
-    kill leaves one run's outputs, or the first without the second, never two runs' mixed."""
+    kill leaves one run's outputs, or the first without the second, never two runs' mixed. The
+    checks (s49rv): unchecked, whatever had appeared at the name during the run was removed, a
+    folder with all it held, --overwrite or not; and a refused first output cost the previous
+    second for nothing."""
     path = Path(path)
+    for other in (*then, path):
+        if os.path.lexists(other):  # perhaps made during the run: is it replaceable?
+            if not overwrite:  # (checked free at the start)
+                raise OutputAppearedError(Path(other))
+            _check_output(Path(other), overwrite, inputs, False)
     if os.path.lexists(path):
         _keep_mode(Path(tmp), path)
         _remove(path)
