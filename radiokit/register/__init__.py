@@ -122,9 +122,11 @@ class Quality:
     (``_confidence.affine_bound``; once per register() call); over 0.5 px (``OBSERVED_PX``) the
     result is flagged, whatever else it passed: a round body shows no turn about its centre, an
     ellipse no shear along its axes, and a field that fits such a body is judged the same whatever
-    the truth (an inclusion off the centre, or corners, pin it). Not a complete test: on a rim
-    blurred 1 px at low noise the pixel grid's steps read a turn "determined" (the bound falls with
-    the noise) that no registration finds. ``note``: what is worth knowing of a result not
+    the truth (an inclusion off the centre, or corners, pin it). Not a complete test: the bound
+    falls with the noise, as a rendered rim's pixel steps read a turn "determined" that no
+    registration finds (a sphere turned 2 degrees, returned at the identity's error: 0.88 px at
+    noise 0.01, 0.25-0.36 at 0.002; benchmarks/README.md, "The affine bound for every result").
+    ``note``: what is worth knowing of a result not
     flagged for it (empty, or the finest level still moving at the end of its budget).
     ``disagreement`` (``register(..., regularisation_check=True)`` only; NaN otherwise): the median over
     the object's interior of ``|d - d2|`` (full-resolution px), ``d2`` the field of a second
