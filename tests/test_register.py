@@ -915,6 +915,42 @@ def test_a_dead_column_does_not_hide_misalignment():
     assert reg.quality.misaligned_fraction > 0.5
 
 
+def _dome_pair(size=256, ramp=0.15, shift=0.0, seed=0):
+    """A dome's line integral (peak 1, a 1 % texture), no motion but ``shift`` px along x, the
+    moving image scaled by ``1 + ramp x`` (x from -1 to 1 across the frame), noise 0.005 in both;
+    and the dome's inner part (bool)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size].astype(np.float64)
+    texture = ndimage.gaussian_filter(rng.standard_normal((size, size)), 3.0)
+    texture *= 0.01 / texture.std()
+
+    def body(dx):
+        u = 1 - ((yy - size / 2) ** 2 + (xx - dx - size / 2) ** 2) / (0.4 * size) ** 2
+        return np.sqrt(np.maximum(u, 0)) * (1 + ndimage.shift(texture, (0, dx), order=3))
+
+    gain = 1 + ramp * (xx / (size - 1) * 2 - 1)
+    fixed = body(0.0) + rng.normal(0, 0.005, (size, size))
+    moving = body(shift) * gain + rng.normal(0, 0.005, (size, size))
+    inner = ((yy - size / 2) ** 2 + (xx - size / 2) ** 2) < (0.3 * size) ** 2
+    return fixed.astype(np.float32), moving.astype(np.float32), inner
+
+
+@pytest.mark.parametrize("ramp", [0.0, 0.15])
+def test_a_slow_field_does_not_hide_a_pixel_of_misalignment(ramp):
+    """A dome moved by 1 px reads misaligned over most of it, with or without a slow gain field
+    (+-15 % across the frame) on the moving image. A guard for any model of slow fields: locally a
+    shift of a smooth body is a gain (``B(x + d) ~ B (1 + d . grad ln B)``), and a gain plane fitted
+    per window before the high-pass took 0.97 -> 0.43 of a half-stopped field's misaligned share
+    (session 49, s49gain; benchmarks/README.md, "A slow multiplicative field read as misalignment")."""
+    from radiokit.register._confidence import consistency
+
+    fixed, moving, inner = _dome_pair(ramp=ramp, shift=1.0)
+    excess = consistency(fixed, moving, 24.0, moving=moving) - 1.0
+    assert np.mean(excess[inner] > 0.1) > 0.5
+
+
 # -- preset="auto": default; weak (textured interior) or silent (silent body) when it is flagged --
 # Margins from the training seeds (benchmarks/README.md, "Automatic preset choice (session 6)"):
 # silent bodies read at most 0.76x TEXTURE_LOW, weak texture at least 1.2x it.
