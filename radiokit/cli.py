@@ -556,23 +556,32 @@ def _kind_hints(args, kind: str) -> dict:
     """``--dark-dataset`` / ``--flat-dataset`` over ``--dataset`` for one kind's files. Why: one
     dataset for both could not calibrate TIFF darks beside NeXus HDF5 flats (the TIFF refused
     it), nor two HDF5 files of different layouts (s49off), as register's --fixed-dataset."""
-    from radiokit.io import FormatError, sniff
-
     hints, own = _raw_hints(args), getattr(args, f"{kind}_dataset", None)
     if own:
+        _hdf5_only(getattr(args, kind), f"--{kind}-dataset names the dataset of the {kind} files, and this one is {{}}")
         return hints | {"dataset": own}
-    for path in getattr(args, kind) if hints.get("dataset") else ():
+    if hints.get("dataset"):
+        _hdf5_only(
+            getattr(args, kind),
+            f"--dataset names the dataset of the darks and flats both, and this {kind} file is {{}}: "
+            "name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
+        )
+    return hints
+
+
+def _hdf5_only(paths, text: str) -> None:
+    """Refuse the first of ``paths`` that is not HDF5, in one line naming the option that gave it a
+    dataset (``text``, its ``{}`` the file's format): the reader's own line says "dataset=
+    (--dataset)", which is not what was given for one kind's files (review s49rv)."""
+    from radiokit.io import FormatError, sniff
+
+    for path in paths:
         try:
             fmt = sniff(path)
         except (OSError, FormatError):  # a missing or unreadable file is named by its reader
             continue
-        if fmt != "hdf5":  # the reader's "dataset= is for HDF5 files" did not say what to give
-            raise FormatError(
-                path,
-                f"--dataset names the dataset of the darks and flats both, and this {kind} file is {fmt}, "
-                "not HDF5: name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
-            )
-    return hints
+        if fmt != "hdf5":
+            raise FormatError(path, text.format(f"{fmt}, not HDF5"))
 
 
 def _calibration_from_files(args, th):

@@ -1607,6 +1607,13 @@ def test_calibrate_names_the_darks_and_the_flats_dataset_each(tmp_path):
         # c, the mean of flat - dark, says both kinds were read (their noise: 20 / sqrt(3 * 168))
         cal_c = float(res.stdout.split("valid pixels = ")[1].split(" counts")[0])
         assert abs(cal_c - (flats.mean() - darks.mean())) < 5, (extra, res.stdout)
+    # one kind's dataset given for a TIFF of that kind: the line names that option, not --dataset
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "darks.tif", "--flat", tmp_path / "flats.h5",
+        "--dark-dataset", "scan/darks", "--flat-dataset", "entry/data/data", "-o", out, "-q", "--overwrite",
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "darks.tif" in res.stderr and "--dark-dataset" in res.stderr and "(--dataset)" not in res.stderr, res.stderr
     helps = " ".join(run_cli("calibrate", "--help").stdout.split())
     assert "--dark-dataset" in helps and "--flat-dataset" in helps, helps
 
