@@ -525,6 +525,11 @@ def cmd_calibrate(args) -> int:
         raise ValueError(
             f"--{kind}-dataset names the --{kind} files' dataset: give --dark and --flat files with it, not --experiment"
         )
+    if args.experiment and getattr(args, "dataset", None):  # and --dataset: an experiment file's layout is its own
+        raise ValueError(
+            "--dataset names the --dark and --flat files' dataset: an --experiment file's darks and flats are "
+            "told apart by its image_key (a plain stack of one kind: give it as --dark or --flat FILE with --dataset)"
+        )
     if args.experiment:
         cal = Calibration.from_experiment(
             args.experiment, allow_external=args.allow_external, progress=_progress(args), **th

@@ -500,10 +500,11 @@ def test_calibrate_refuses_an_experiment_and_dark_or_flat_files_together(tmp_pat
     assert not (tmp_path / "cal.h5").exists()
 
 
-@pytest.mark.parametrize("option", ["--dark-dataset", "--flat-dataset"])
+@pytest.mark.parametrize("option", ["--dark-dataset", "--flat-dataset", "--dataset"])
 def test_calibrate_refuses_an_experiment_with_a_kind_s_dataset(option, tmp_path):
     """s49rv: --dark-dataset / --flat-dataset name the --dark / --flat files' dataset; beside
-    --experiment they were silently not used (exit 0), as the --dark files once were."""
+    --experiment they were silently not used (exit 0), as the --dark files once were. So was
+    --dataset (an experiment file's layout is fixed, its darks and flats told apart by image_key)."""
     path = _experiment(tmp_path / "exp.h5")
     res = run_cli("calibrate", "--experiment", path, option, "no/such", "-o", tmp_path / "cal.h5")
     one_line_error(res, "--experiment", option)
