@@ -1618,11 +1618,11 @@ def test_silent_registers_a_large_pair_binned_when_asked():
 
 
 def test_body_scale_measures_the_fields_departure_from_a_quadratic_motion():
-    """``_body_scale``: a quadratic field (an expansion and a barrelling) departs by nothing;
-    a 3 px bump on one side of the rim by at most its RMS over the rim (the fit takes a part of
-    it) and more than half of it; a rim seen only on one
-    side cannot vouch for the interior (NaN); an interior filled with something the rim does not
-    predict departs by what it holds there."""
+    """``_body_scale``: a quadratic field (an expansion and a barrelling) departs by nothing,
+    also fitted on a rim seen only on one side; a 3 px bump on one side of the rim by at most its
+    RMS over the rim (the fit takes a part of it) and more than half of it; a rim on one line, or
+    under 100 px, determines no quadratic (NaN); an interior filled with something the rim does
+    not predict departs by what it holds there."""
     from radiokit.register import _body_scale
 
     n = 200
@@ -1638,8 +1638,12 @@ def test_body_scale_measures_the_fields_departure_from_a_quadratic_motion():
     bump[0] += local
     rms = np.sqrt(np.mean(local[obs] ** 2))
     assert 0.5 * rms < _body_scale(bump, obj, obs, inner) <= rms and rms > 0.5  # a local motion at the rim
-    half = obs & (xx < 100)
-    assert np.isnan(_body_scale(quad, obj, half, inner))
+    half = obs & (xx < 100)  # a rim seen on one side still fits a quadratic motion (the affine bound
+    assert _body_scale(quad, obj, half, inner) < 1e-4  # judges whether the edges determine it)
+    line = np.zeros_like(obs)
+    line[100] = True  # 160 px on one row outside the inner disc: x and y's quadratic undetermined
+    assert np.isnan(_body_scale(quad, obj, line, r < 20))
+    assert np.isnan(_body_scale(quad, obj, obs & (np.abs(xx - 100) < 3) & (yy < 23), inner))  # < 100 px
     fill = quad.copy()
     fill[1][inner] += 1.0
     assert 0.7 < _body_scale(fill, obj, obs, inner) < 1.3
@@ -1685,6 +1689,34 @@ def test_a_silent_body_moving_at_its_own_scale_is_trusted():
     q = reg.quality
     assert q.interior_observed < 0.5 and not q.ok and _epe(reg.displacement, d, mask)[0] > 1.0
     assert "misaligned" in q.reason or "still moves" in q.reason or "not body-scale" in q.reason
+
+
+def test_a_silent_slab_whose_map_observes_only_its_corners_is_trusted():
+    """A textureless flat slab (soft straight edges, turned 11 degrees in the frame) stretched
+    3 % along the rows and compressed 2 % along the columns (2 px at its ends). Its straight
+    edges observe only their normal component, so the map calls its corners observed and not
+    the sides between (the interior under a fifth observed, the rim not around it): the silent
+    waiver called it "not body-scale" though ``silent`` lands within 0.05 px and the edges pin
+    the slab's affine motion (``affine_bound`` far under 0.5 px). The fit on whatever rim is
+    observed finds it body-scale, and the result is trusted."""
+    from scipy.special import expit
+
+    n, c, th = 384, 191.5, 0.2
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+
+    def body(y, x):
+        u, v = np.cos(th) * (x - c) + np.sin(th) * (y - c), np.cos(th) * (y - c) - np.sin(th) * (x - c)
+        return 0.8 * expit((0.33 * n - np.abs(u)) / 1.8) * expit((0.22 * n - np.abs(v)) / 1.8)
+
+    py, px = c + 1.03 * (yy - c), c + 0.98 * (xx - c)
+    rng = np.random.default_rng(0)
+    fixed, moving = (body(a, b) + 0.01 * rng.standard_normal(yy.shape) for a, b in ((py, px), (yy, xx)))
+    truth, mask = np.stack([py - yy, px - xx]), body(py, px) > 0.4
+    reg = register(fixed.astype(np.float32), moving.astype(np.float32), "rc", preset="silent")
+    q = reg.quality
+    assert _epe(reg.displacement, truth, mask)[0] < 0.1 < 1.0 < _epe(np.zeros_like(truth), truth, mask)[0]
+    assert q.interior_observed < 0.5 and q.affine_bound < 0.1, q
+    assert q.body_scale <= 0.3 and q.ok, q.reason
 
 
 def test_interior_thinning_recovers_a_slow_thinning_and_declines_an_additive_change():
