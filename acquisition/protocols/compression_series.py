@@ -1994,7 +1994,7 @@ def _before_source(r: _Run, exc: BaseException) -> bool:
     a controller on a port (the lab's, or ``[sim] source_port``) is reached only through
     :func:`_guarded_source`, whose errors all carry ``source_unreached``. (The virtual bench's own
     emulator is not a controller anyone must check.)"""
-    return (not r.sim or bool(r.p.sim.source_port)) and not hasattr(exc, "source_unreached")
+    return not _own_emulator(r) and not hasattr(exc, "source_unreached")
 
 
 def _own_emulator(r: _Run) -> bool:
