@@ -140,10 +140,8 @@ def _summary(meta: dict) -> dict:
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
         out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
-    elif fmt == "calibration":  # the lines it fills, named as calibrate named them
-        from radiokit.calibrate import line_summary
-
-        out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), meta.get("provenance", {}))
+    elif fmt == "calibration":
+        out = _calibration_summary(meta)
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
@@ -157,6 +155,16 @@ def _summary(meta: dict) -> dict:
     elif out.get("pixel_size_mm") is None and meta.get("pixel_size_unusable"):  # read and ignored: why
         out["pixel_size"] = f"unusable, {meta['pixel_size_unusable']}"
     return {k: v for k, v in out.items() if v not in (None, "", {})}
+
+
+def _calibration_summary(meta: dict) -> dict:
+    """A calibration file's lines it fills, named as calibrate named them, and the files and
+    datasets its darks and flats were read from (``made from``, one a line)."""
+    from radiokit.calibrate import input_lines, line_summary
+
+    prov = meta.get("provenance", {})
+    out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), prov)
+    return out | {"made from": input_lines(prov)}
 
 
 #: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
@@ -346,8 +354,25 @@ def cmd_info(args) -> int:
             held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
-            print(f"  {key:<10} {_escaped(value)}")
+            if key == "made from":  # a calibration's input files, one a line
+                _print_lines(key, value)
+            else:
+                print(f"  {key:<10} {_escaped(value)}")
     return status
+
+
+#: the most lines ``info`` prints of one item (a calibration's input files) before saying how many more
+_MOST_LINES = 10
+
+
+def _print_lines(key: str, lines: list) -> None:
+    """``info``'s item ``key`` of several ``lines``, one a line under it: a calibration made from
+    300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
+    shown = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
+    for k, line in enumerate(shown):
+        print(f"  {key if k == 0 else '':<10} {_escaped(line)}")
+    if len(shown) < len(lines):
+        print(f"  {'':<10} ... and {len(lines) - len(shown)} more (radiokit info --json lists them all)")
 
 
 # -- calibrate ---------------------------------------------------------------------------------
@@ -447,20 +472,25 @@ def _in_given_order(errors, paths) -> list:
 
 
 def _stack(
-    paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None, scalings=None
+    paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None, scalings=None, inputs=None
 ) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
     bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
     pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
-    file's :func:`radiokit.calibrate.value_scaling`."""
-    from radiokit.calibrate import pixel_layout, value_scaling
+    file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's
+    :class:`radiokit.calibrate.CalibrationInput` (``hints["option"]``: the option that named its
+    dataset), its frames of this kind counted (one file of darks and flats: one entry)."""
+    from radiokit.calibrate import CalibrationInput, pixel_layout, value_scaling
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
     origins = [] if origins is None else origins
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
+    kind = "darks" if key == 2 else "flats"  # (what an input's frames counted as)
+    hints = dict(hints)
+    option = hints.pop("option", None)
     with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
         for p in paths:
             with open_frames(p, **hints) as src:
@@ -478,10 +508,15 @@ def _stack(
                     layouts[str(p)] = pixel_layout(src.meta)
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
                 keys = src.meta.get("image_key")
+                used = (
+                    inputs.setdefault(str(p), CalibrationInput.of(p, src.meta, option)) if inputs is not None else None
+                )
                 for i in range(len(src)):
                     if key is None or keys is None or keys[i] == key:
                         frames.append(src[i])
                         origins.append((p, i))
+                        if used is not None:
+                            setattr(used, kind, getattr(used, kind) + 1)
                         bar.update()
                         if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
@@ -601,10 +636,33 @@ def _calibration_from_files(args, th):
     _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
     _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
     hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
-    origins, bits, layouts, scalings = {"dark": [], "flat": []}, {}, {}, {}
+    origins, bits, layouts, scalings, inputs = {"dark": [], "flat": []}, {}, {}, {}, {}
     _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
-    darks = _stack(args.dark, hints["dark"], 2, _progress(args), origins["dark"], bits, layouts, scalings)
-    flats = _stack(args.flat, hints["flat"], 1, _progress(args), origins["flat"], bits, layouts, scalings)
+    # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
+    said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}
+    said = {k: opt if hints[k].get("dataset") else None for k, opt in said.items()}  # else the file's own layout
+    darks = _stack(
+        args.dark,
+        hints["dark"] | {"option": said["dark"]},
+        2,
+        _progress(args),
+        origins["dark"],
+        bits,
+        layouts,
+        scalings,
+        inputs,
+    )
+    flats = _stack(
+        args.flat,
+        hints["flat"] | {"option": said["flat"]},
+        1,
+        _progress(args),
+        origins["flat"],
+        bits,
+        layouts,
+        scalings,
+        inputs,
+    )
     declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
     if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
         raise ValueError(
@@ -622,6 +680,7 @@ def _calibration_from_files(args, th):
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
+    cal.provenance["inputs"] = [one.record() for one in inputs.values()]
     return cal
 
 

@@ -1,0 +1,117 @@
+"""What the offline commands say of the files they read: where a calibration came from, stacks
+stored frames-last, ``--dataset`` over TIFF and HDF5 files mixed, and names with control
+characters. Real files (tifffile, h5py) written to ``tmp_path``, run through ``main``."""
+
+import json
+import os
+from datetime import UTC, datetime
+
+import h5py
+import numpy as np
+import tifffile
+from conftest import run_cli
+
+from radiokit.calibrate import Calibration
+from radiokit.io import ExperimentWriter, ImageKey
+
+ROWS, COLS = 48, 64
+
+
+def _darks_flats(n=5, seed=0):
+    rng = np.random.default_rng(seed)
+    darks = rng.normal(100, 2, (n, ROWS, COLS)).round().astype(np.uint16)
+    flats = rng.normal(3000, 20, (n, ROWS, COLS)).round().astype(np.uint16)
+    return darks, flats
+
+
+def _write_h5(path, name, data):
+    with h5py.File(path, "w") as f:
+        f[name] = data
+    return path
+
+
+def _mtime_utc(path) -> datetime:
+    return datetime.fromtimestamp(os.stat(path).st_mtime, UTC).replace(microsecond=0)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. a calibration records the files and datasets it was read from
+# ------------------------------------------------------------------------------------------------
+
+
+def test_a_calibration_records_each_input_file_its_dataset_and_frames(tmp_path):
+    """s50: a calibration named its files at most as given; which HDF5 dataset made it, and which
+    file that was, could not be told later. Each input is recorded: as given and resolved, the
+    dataset and the option naming it, the frames of each kind, its size and modification time;
+    and ``info`` of the calibration shows them."""
+    darks, flats = _darks_flats()
+    _write_h5(tmp_path / "darks.h5", "scan/dark", darks)
+    tifffile.imwrite(tmp_path / "flats_a.tif", flats[:3], photometric="minisblack")
+    tifffile.imwrite(tmp_path / "flats_b.tif", flats[3:], photometric="minisblack")
+    os.symlink(tmp_path / "flats_b.tif", tmp_path / "link.tif")
+    out = tmp_path / "cal.h5"
+    res = run_cli(
+        "calibrate", "--dark", "darks.h5", "--dark-dataset", "scan/dark",
+        "--flat", "flats_a.tif", "link.tif", "-o", out, "-q", cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    inputs = Calibration.load(out).provenance["inputs"]
+    assert [i["path"] for i in inputs] == ["darks.h5", "flats_a.tif", "link.tif"]
+    assert [i["resolved"] for i in inputs] == [str(tmp_path / n) for n in ("darks.h5", "flats_a.tif", "flats_b.tif")]
+    assert [i["format"] for i in inputs] == ["hdf5", "tiff", "tiff"]
+    assert [(i["dataset"], i["option"]) for i in inputs] == [
+        ("scan/dark", "--dark-dataset"),
+        (None, None),
+        (None, None),
+    ]
+    assert [(i["darks"], i["flats"]) for i in inputs] == [(5, 0), (0, 3), (0, 2)]
+    for i in inputs:
+        assert i["size_bytes"] == os.path.getsize(i["resolved"])
+        recorded = datetime.strptime(i["modified"], "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=UTC)
+        assert abs((recorded - _mtime_utc(i["resolved"])).total_seconds()) <= 1
+    shown = run_cli("info", out)
+    assert shown.returncode == 0, shown.stderr
+    assert "made from  darks.h5: dataset scan/dark (--dark-dataset), 5 darks;" in shown.stdout, shown.stdout
+    assert "flats_a.tif: tiff, 3 flats;" in shown.stdout and "link.tif: tiff, 2 flats;" in shown.stdout, shown.stdout
+    assert str(tmp_path / "flats_b.tif") in shown.stdout  # where the link led
+    meta = json.loads(run_cli("info", "--json", out).stdout)[0]["metadata"]
+    assert len(meta["made from"]) == 3
+
+
+def test_one_file_of_darks_and_flats_is_one_input_with_both_counts(tmp_path):
+    """An experiment-style file given as --dark and --flat is one input: 4 darks and 6 flats, not
+    two entries; the dataset the reader found by the file's own layout has no option."""
+    darks, flats = _darks_flats(6)
+    path = tmp_path / "both.h5"
+    with ExperimentWriter(path, shape=(ROWS, COLS)) as w:
+        for f in darks[:4]:
+            w.append(f, image_key=ImageKey.DARK)
+        for f in flats:
+            w.append(f, image_key=ImageKey.FLAT)
+    out = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--dark", path, "--flat", path, "-o", out, "-q").returncode == 0
+    (one,) = Calibration.load(out).provenance["inputs"]
+    assert (one["format"], one["dataset"], one["option"]) == ("experiment", "/entry/instrument/detector/data", None)
+    assert (one["darks"], one["flats"]) == (4, 6)
+    # from the experiment file itself (the library's from_experiment, and calibrate --experiment)
+    assert run_cli("calibrate", "--experiment", path, "-o", tmp_path / "cal2.h5", "-q").returncode == 0
+    (two,) = Calibration.load(tmp_path / "cal2.h5").provenance["inputs"]
+    assert (two["path"], two["darks"], two["flats"]) == (str(path), 4, 6)
+
+
+def test_a_calibration_made_before_inputs_were_recorded_still_reads_and_says_so(tmp_path):
+    """Old calibrations (no ``inputs``) load and correct as before; ``info`` names what they do
+    record (the files as given) and that the rest is not; a crafted ``inputs`` is said unreadable,
+    never a traceback."""
+    darks, flats = _darks_flats()
+    cal = Calibration.from_frames(darks, flats)
+    cal.provenance["dark_files"], cal.provenance["flat_files"] = ["d.tif"], ["f.tif"]
+    cal.save(tmp_path / "old.h5")
+    assert "inputs" not in Calibration.load(tmp_path / "old.h5").provenance
+    res = run_cli("info", tmp_path / "old.h5")
+    assert res.returncode == 0, res.stderr
+    assert "made from  darks d.tif; flats f.tif (as given; made before radiokit recorded" in res.stdout, res.stdout
+    cal.provenance = {k: v for k, v in cal.provenance.items() if not k.endswith("_files")} | {"inputs": "x"}
+    cal.save(tmp_path / "odd.h5")
+    res = run_cli("info", tmp_path / "odd.h5")
+    assert res.returncode == 0 and "made from  unreadable" in res.stdout, (res.stdout, res.stderr)
