@@ -54,7 +54,16 @@ def _raw_hints(args) -> dict:
         hints["shape"] = tuple(args.shape)
     if getattr(args, "allow_external", False):
         hints["allow_external"] = True
+    if getattr(args, "narrow_frames", False):
+        hints["narrow_frames"] = True
     return hints
+
+
+#: --narrow-frames: a stack whose last axis is far the shortest is refused as stored rows x cols x n
+_NARROW_HELP = (
+    "read an HDF5 stack (n, rows, cols) whose cols are far fewer than its n and rows as it is stored (refused "
+    "otherwise: such a stack is mostly rows x cols x n, numpy's dstack)"
+)
 
 
 def _add_raw_hints(p):
@@ -77,6 +86,7 @@ def _add_raw_hints(p):
         help="read data in other files: HDF5 external links, external raw storage and virtual datasets, "
         "and the planes a multi-file OME-TIFF keeps in the files beside it",
     )
+    g.add_argument("--narrow-frames", action="store_true", help=_NARROW_HELP)
 
 
 # -- info --------------------------------------------------------------------------------------
@@ -747,12 +757,13 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
+def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame", narrow_frames=False):
     """Frame ``index`` of ``path`` as float32, the index counted from the start (-1 is the last
     frame: the same-image check compares frames, not how they were written), and the file's metadata."""
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
+    hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
@@ -848,6 +859,7 @@ def _reader_advice(exc) -> dict:
 _PROCESS_ADVICE = {
     "allow_external": "(radiokit process reads no data outside the experiment file: copy the linked data into it first)",
     "dataset": "radiokit process reads experiment files only (radiokit correct --dataset PATH reads one)",
+    "narrow_frames": "radiokit process reads experiment files only, their frames stored (n, rows, cols)",
 }
 
 
@@ -871,10 +883,20 @@ def _register_inputs(args):
     from radiokit.io import check_output, check_same_pixel_size
 
     fixed, fixed_frame, fixed_meta = _one_image(
-        args.fixed, args.fixed_frame, args.fixed_dataset or args.dataset, args.allow_external
+        args.fixed,
+        args.fixed_frame,
+        args.fixed_dataset or args.dataset,
+        args.allow_external,
+        "--fixed-frame",
+        args.narrow_frames,
     )
     moving, moving_frame, moving_meta = _one_image(
-        args.moving, args.moving_frame, args.moving_dataset or args.dataset, args.allow_external, "--moving-frame"
+        args.moving,
+        args.moving_frame,
+        args.moving_dataset or args.dataset,
+        args.allow_external,
+        "--moving-frame",
+        args.narrow_frames,
     )
     # a field in pixels between two pitches is a scaling, not the sample's motion
     check_same_pixel_size(
@@ -1556,6 +1578,7 @@ def _add_register_inputs(p):
         action="store_true",
         help="read data in other files: HDF5 links and storage, a multi-file OME-TIFF's other files",
     )
+    p.add_argument("--narrow-frames", action="store_true", help=_NARROW_HELP)
 
 
 def _add_register(sub):

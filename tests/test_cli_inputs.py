@@ -9,7 +9,7 @@ from datetime import UTC, datetime
 import h5py
 import numpy as np
 import tifffile
-from conftest import run_cli
+from conftest import one_line_error, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.io import ExperimentWriter, ImageKey
@@ -115,3 +115,31 @@ def test_a_calibration_made_before_inputs_were_recorded_still_reads_and_says_so(
     cal.save(tmp_path / "odd.h5")
     res = run_cli("info", tmp_path / "odd.h5")
     assert res.returncode == 0 and "made from  unreadable" in res.stdout, (res.stdout, res.stderr)
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. an HDF5 stack stored frames-last is refused, not read as strips
+# ------------------------------------------------------------------------------------------------
+
+
+def test_an_hdf5_stack_stored_frames_last_is_refused_in_one_line_and_read_as_stored_on_request(tmp_path):
+    """s50: a (512, 512, 5) stack (numpy's dstack of 5 frames) was read as 512 frames of 512 x 5
+    with only a warning. Refused in one line naming the file, the dataset, its shape and the way
+    out; ``--narrow-frames`` reads it as stored. A stack of (n, rows, cols) frames is read as ever."""
+    rng = np.random.default_rng(1)
+    frames = rng.integers(1000, 3000, (5, 128, 96), dtype=np.uint16)
+    path = tmp_path / "stack.h5"
+    with h5py.File(path, "w") as f:
+        f["scan/frames"] = np.dstack(list(frames))  # (128, 96, 5)
+        f["scan/plain"] = frames
+    res = run_cli("info", path, "--dataset", "scan/frames")
+    one_line_error(res, "stack.h5", "scan/frames", "128x96x5", "5 frames of 128x96", "--narrow-frames")
+    res = run_cli("info", "--json", path, "--dataset", "scan/frames", "--narrow-frames")
+    assert res.returncode == 0, res.stderr
+    assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (128, [96, 5])
+    res = run_cli("info", "--json", path, "--dataset", "scan/plain")
+    assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (5, [128, 96])
+    # register reads one frame of each image: refused alike
+    res = run_cli("register", path, path, "--dataset", "scan/frames", "-o", tmp_path / "f.h5")
+    one_line_error(res, "stack.h5", "scan/frames", "--narrow-frames")
+    assert not (tmp_path / "f.h5").exists()
