@@ -66,6 +66,25 @@ _NARROW_HELP = (
 )
 
 
+def _dataset_for_hdf5(hints: dict, paths) -> dict:
+    """``hints`` with ``--dataset`` applied to the HDF5 files among ``paths`` only, their TIFFs
+    (raw, ITEX) reading as ever (the reader's ``hdf5_dataset``). Why: ``info`` and ``correct`` of
+    TIFF and HDF5 files together refused ``--dataset`` for the TIFF, so no one command read them
+    (s50). Where none of them is HDF5 it stays ``dataset``, which the reader refuses naming the
+    file: an option that applies to nothing given is a mistake to say, not to drop."""
+    from radiokit.io import FormatError, sniff
+
+    def hdf5(path) -> bool:
+        try:
+            return sniff(path) == "hdf5"
+        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
+            return False
+
+    if not hints.get("dataset") or not any(hdf5(p) for p in paths):
+        return hints
+    return {k: v for k, v in hints.items() if k != "dataset"} | {"hdf5_dataset": hints["dataset"]}
+
+
 def _add_raw_hints(p):
     g = p.add_argument_group("raw files (headerless)")
     g.add_argument(
@@ -318,9 +337,10 @@ def cmd_info(args) -> int:
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
     # JSON has an entry per file given, a bad one's {"file", "error"}, so that its reader sees it too
+    hints = _dataset_for_hdf5(_raw_hints(args), args.files)
     for path in args.files:
         try:
-            with open_frames(path, **_raw_hints(args)) as src:
+            with open_frames(path, **hints) as src:
                 reports.append(_describe(path, src, args.all, sample))
         except Exception as exc:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
@@ -736,7 +756,7 @@ def cmd_correct(args) -> int:
         domain=args.domain,
         progress=_progress(args),
         overwrite=args.overwrite,
-        **_raw_hints(args),
+        **_dataset_for_hdf5(_raw_hints(args), args.frames),
     )
     print(
         f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "

@@ -224,7 +224,16 @@ class FrameSource:
     """
 
     def __init__(
-        self, path, *, format=None, dataset=None, allow_external=False, budget=None, narrow_frames=False, **hints
+        self,
+        path,
+        *,
+        format=None,
+        dataset=None,
+        hdf5_dataset=None,
+        allow_external=False,
+        budget=None,
+        narrow_frames=False,
+        **hints,
     ):
         if not isinstance(path, (str, os.PathLike)):  # pathlib's own words named no argument
             already = ": frames already in memory need no reading" if hasattr(path, "shape") else ""
@@ -235,6 +244,7 @@ class FrameSource:
         self._allow_external = bool(allow_external)
         self._budget = budget
         self.format = self._format_for(format, dataset, hints)
+        dataset = dataset or (hdf5_dataset if self.format == "hdf5" else None)  # (other formats: ignored)
         self._fh = self._tif = self._h5 = None
         self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
         self._siblings = {}  # a multi-file OME-TIFF's other files, by path, open while this is
@@ -2030,7 +2040,8 @@ def read(path, /, **hints) -> Frames:
         skip) and ``n`` (frames to read); ``panel_shape`` ((rows, cols): the panel's frames as a
         calibration gives them) settles a raw size that fits several presets, and other formats
         let it pass;
-        ``narrow_frames=True`` to read a stack whose frames are far narrower than they are many
+        ``hdf5_dataset`` as ``dataset`` for an HDF5 file, ignored by other formats (one hint for a
+        command's HDF5 and TIFF files alike); ``narrow_frames=True`` to read a stack whose frames are far narrower than they are many
         (an HDF5 stack whose last axis is far the shortest is refused as one stored rows x cols x n);
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
