@@ -25,6 +25,7 @@ try:  # the second the imports take: Ctrl-C there printed an import's traceback 
     import numpy as np
 
     from radiokit import __version__
+    from radiokit._names import shown
     from radiokit.errors import RadiokitError
 except KeyboardInterrupt:
     print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
@@ -353,7 +354,7 @@ def cmd_info(args) -> int:
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
             reports[-1]["error"] = f"{path}: no frames"
-            print(f"radiokit info: {path}: no frames", file=sys.stderr)
+            print(f"radiokit info: {shown(path)}: no frames", file=sys.stderr)
     status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
         from radiokit._json import strict
@@ -363,7 +364,7 @@ def cmd_info(args) -> int:
     for rep in reports:
         if "frames" not in rep:  # its one line is on stderr
             continue
-        print(f"{rep['file']}")
+        print(shown(rep["file"]))
         print(f"  format     {rep['format']}")
         none = "" if rep["frames"] else " (no frames)"
         print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
@@ -559,7 +560,7 @@ def _stack(
 def _hdf5_name(path) -> None:
     """An HDF5 output must be named so: under ``out.tif`` other programs would take it for a TIFF."""
     if Path(path).suffix.lower() not in (".h5", ".hdf5", ".hdf", ".nxs", ".nx"):
-        raise ValueError(f"{path}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
+        raise ValueError(f"{shown(path)}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
 
 
 def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
@@ -611,7 +612,7 @@ def cmd_calibrate(args) -> int:
         tmp.write_bytes(image.getbuffer())
     p = cal.provenance
     print(
-        f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
+        f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {shown(args.output)}"
     )
     noise = p.get("dark_noise_counts")  # None from one dark: no temporal noise to measure (0.0 is a value)
     noise = "not measured (one dark)" if noise is None else f"{noise:.2f} counts"
@@ -739,14 +740,14 @@ def cmd_correct(args) -> int:
 
     check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, [*args.frames, args.cal]))
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
-        raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+        raise ValueError(f"{shown(args.output)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
         _an_experiment(args.frames[0], _raw_hints(args))
         cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
-        print(f"calibrated from the darks and flats of {args.frames[0]}")
+        print(f"calibrated from the darks and flats of {shown(args.frames[0])}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
     summary = correct_files(
@@ -759,7 +760,7 @@ def cmd_correct(args) -> int:
         **_dataset_for_hdf5(_raw_hints(args), args.frames),
     )
     print(
-        f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
+        f"{summary['frames']} frame(s) -> {shown(summary['output'])} ({summary['domain']}) "
         f"at {summary['frames_per_second']:.1f} frames/s"
     )
     saturated = f"{summary['saturated']} saturated"
@@ -1032,7 +1033,7 @@ def cmd_register(args) -> int:
         n = reg.options["clipped"]
         print(
             "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
-            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
+            f"defective pixels?): {n['fixed']} pixels of {shown(args.fixed)}, {n['moving']} of {shown(args.moving)}"
         )
     if "regularisation_check" in reg.options:  # the second, differently regularised registration
         second = reg.options["regularisation_check"]
@@ -1044,9 +1045,11 @@ def cmd_register(args) -> int:
                 else "not run (already flagged)"
             )
         )
-    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}"))
+    print(
+        f"wrote {shown(args.output)}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}")
+    )
     if args.png:
-        print(f"figure {args.png}")
+        print(f"figure {shown(args.png)}")
     return 0 if q.ok else 1
 
 
@@ -1094,7 +1097,7 @@ def _write_register_outputs(args, record, draw) -> int | None:
     except KeyboardInterrupt as exc:
         if not done:
             raise
-        both = f"{args.output} and {args.png} were" if args.png else f"{args.output} was"
+        both = f"{shown(args.output)} and {shown(args.png)} were" if args.png else f"{shown(args.output)} was"
         print(f"radiokit register: interrupted once {both} written (complete, this run's)", file=sys.stderr)
         return exit_status(exc)
     return None
@@ -1273,7 +1276,7 @@ def _check_process_files(args) -> None:
                 )
     if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
         raise ValueError(
-            f"-o {args.output}: -o is a results folder, not a file; name it without {args.output.suffix} "
+            f"-o {shown(args.output)}: -o is a results folder, not a file; name it without {args.output.suffix} "
             "(results.h5, results.json and report.html are written inside)"
         )
 
@@ -1396,7 +1399,7 @@ def _process_many(args, cfg) -> int:
     for r in results:
         if "error" in r:
             failed += 1
-            print(f"{r['source']}: error: {_batch_error(r, args)}", file=sys.stderr)
+            print(f"{shown(r['source'])}: error: {_batch_error(r, args)}", file=sys.stderr)
         else:
             files = {}
             if "output" in r:  # as one file's run prints them
@@ -1438,7 +1441,7 @@ def _print_headline(record, files, prefix=""):
     reason = (main.change_ratio_reason or {}).get(dom)
     cr = reason if reason else value_pm(main.change_ratio[dom], (main.change_ratio_se or {}).get(dom), 3)
     print(
-        f"{prefix}{record.source}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
+        f"{prefix}{shown(record.source)}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
         f"{cr}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
@@ -1458,7 +1461,7 @@ def _print_headline(record, files, prefix=""):
         _print_headline(record.control, {}, prefix="control ")
     for name in ("report", "results_json"):
         if name in files:
-            print(f"  {name.replace('_', '.')}: {files[name]}")
+            print(f"  {name.replace('_', '.')}: {shown(files[name])}")
 
 
 # -- parser ------------------------------------------------------------------------------------

@@ -175,3 +175,31 @@ def test_dataset_applies_to_the_hdf5_files_among_tiffs_in_info_and_correct(tmp_p
     np.testing.assert_allclose(np.median(got, axis=(1, 2)), [np.log(2)] * 2 + [np.log(4)] * 3, atol=2e-3)
     res = run_cli("info", tmp_path / "b.tif", "--dataset", "scan/proj")
     one_line_error(res, "b.tif", "--dataset", "HDF5")
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. names holding control characters
+# ------------------------------------------------------------------------------------------------
+
+
+def test_a_name_with_a_control_character_is_printed_quoted_and_escaped(tmp_path):
+    """s50: an output named "cal\\nx.h5" was printed raw, ``-> cal`` on one line and ``x.h5`` on
+    the next; an escape in a name reached the terminal. Such names print as Python's repr writes
+    them, in what the command says on success and in its one-line errors; plain names as typed."""
+    darks, flats = _darks_flats()
+    tifffile.imwrite(tmp_path / "d.tif", darks, photometric="minisblack")
+    tifffile.imwrite(tmp_path / "f.tif", flats, photometric="minisblack")
+    out = tmp_path / "cal\nx.h5"
+    res = run_cli("calibrate", "--dark", "d.tif", "--flat", "f.tif", "-o", out.name, "-q", cwd=tmp_path)
+    assert res.returncode == 0 and out.is_file(), res.stderr
+    assert "-> 'cal\\nx.h5'\n" in res.stdout, res.stdout
+    assert "x.h5" not in res.stdout.replace("'cal\\nx.h5'", ""), res.stdout
+    one_line_error(run_cli("calibrate", "--dark", "d.tif", "--flat", "f.tif", "-o", out), "cal\\nx.h5': exists")
+    res = run_cli("info", out)
+    assert res.returncode == 0 and res.stdout.startswith(f"'{tmp_path}/cal\\nx.h5'\n  format"), res.stdout
+    tifffile.imwrite(tmp_path / "p.tif", darks[:1] + 1000, photometric="minisblack")
+    res = run_cli("correct", "p.tif", "--cal", out.name, "-o", "p\x1bx.tif", cwd=tmp_path)
+    assert res.returncode == 0 and "-> 'p\\x1bx.tif' (log)" in res.stdout, (res.stdout, res.stderr)
+    assert "\x1b" not in res.stdout + res.stderr
+    res = run_cli("correct", "p.tif", "--cal", "cal.h5", "-o", "q.tif", cwd=tmp_path)  # a plain name, as typed
+    one_line_error(res, "radiokit correct: cal.h5: no such file")
