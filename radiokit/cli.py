@@ -957,7 +957,8 @@ def _register_inputs(args):
         if args.png.suffix.lower().lstrip(".") not in kinds:
             raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
     _check_register_memory(args, fixed)
-    return fixed, moving, mask
+    types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored (_types_hint)
+    return fixed, moving, mask, types
 
 
 #: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
@@ -994,7 +995,7 @@ def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord
     from radiokit.register import register, with_default_preset
 
-    fixed, moving, mask = _register_inputs(args)
+    fixed, moving, mask, types = _register_inputs(args)
     _check_preset(args)
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
@@ -1046,7 +1047,8 @@ def cmd_register(args) -> int:
             )
         )
     print(
-        f"wrote {shown(args.output)}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}")
+        f"wrote {shown(args.output)}"
+        + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{_types_hint(*types)}")
     )
     if args.png:
         print(f"figure {shown(args.png)}")
@@ -1119,6 +1121,23 @@ def _negative_hint(q) -> str:
         f"; the images are each other's negative (NCC {q.ncc_before:.2f} before registering): one in line "
         "integrals -ln(I/I0), the other in counts or transmission? register two of one convention "
         "(radiokit correct --domain)"
+    )
+
+
+def _types_hint(fixed_type: str, moving_type: str) -> str:
+    """Why a flagged pair of integer images of two sizes (uint8 against uint16) may be judged
+    unregistrable as given: an 8-bit copy of a 16-bit image (a viewer's export) holds its values
+    about 257 times smaller, and the checks, which compare the registered pair's intensities with
+    the noise, read that difference as structure left misaligned ("did not find the motion")
+    whatever the field. s50: such a copy of one image, no motion, was registered by rc with a zero
+    field (max |d| 0.00 px) and flagged; its 16-bit copy (x 257, quantised alike) was not. The
+    flag stays: no check can judge intensities of two scales."""
+    kinds = [np.dtype(t) if t else None for t in (fixed_type, moving_type)]
+    if None in kinds or any(k.kind not in "ui" for k in kinds) or kinds[0].itemsize == kinds[1].itemsize:
+        return ""
+    return (
+        f"; the images are {kinds[0]} and {kinds[1]}: their values are not of one scale (an 8-bit copy of a "
+        "16-bit image?), which the checks compare; register two images of one type"
     )
 
 

@@ -203,3 +203,35 @@ def test_a_name_with_a_control_character_is_printed_quoted_and_escaped(tmp_path)
     assert "\x1b" not in res.stdout + res.stderr
     res = run_cli("correct", "p.tif", "--cal", "cal.h5", "-o", "q.tif", cwd=tmp_path)  # a plain name, as typed
     one_line_error(res, "radiokit correct: cal.h5: no such file")
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. an 8-bit and a 16-bit copy of one image registered
+# ------------------------------------------------------------------------------------------------
+
+
+def test_an_8_bit_copy_of_a_16_bit_image_is_flagged_with_the_reason(tmp_path):
+    """s50: an 8-bit copy of a 16-bit image (no motion, its values 257 times smaller) registered
+    with a zero field but was flagged "did not find the motion": the checks compare the pair's
+    intensities, and a scale of 257 between them reads as structure left misaligned. The flag
+    stays (no check judges intensities of two scales) and says why; the 16-bit copy of the 8-bit
+    one (x 257, quantised alike) registers and passes: the quantisation is not what is flagged."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    n = 192
+    yy, xx = np.mgrid[:n, :n]
+    image = ndimage.gaussian_filter(rng.normal(0, 1, (n, n)), 3) + 0.8 * np.exp(
+        -((yy - 96) ** 2 + (xx - 80) ** 2) / (2 * 25**2)
+    )
+    image = (image - image.min()) / (image.max() - image.min())
+    i16 = np.round(1000 + image * 50000).astype(np.uint16)
+    i8 = np.round(i16 / 257).astype(np.uint8)
+    for name, data in (("i16.tif", i16), ("i8.tif", i8), ("i8x257.tif", i8.astype(np.uint16) * 257)):
+        tifffile.imwrite(tmp_path / name, data)
+    res = run_cli("register", "i16.tif", "i8.tif", "-o", "f.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "max |d| 0.00 px" in res.stdout  # the field found no motion, as there is none
+    assert "the images are uint16 and uint8: their values are not of one scale" in res.stdout, res.stdout
+    res = run_cli("register", "i16.tif", "i8x257.tif", "-o", "g.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 0 and "not of one scale" not in res.stdout, (res.stdout, res.stderr)
