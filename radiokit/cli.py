@@ -509,7 +509,7 @@ def _stack(
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
     bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
     pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
-    file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's
+    file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's (and dataset's)
     :class:`radiokit.calibrate.CalibrationInput` (``hints["option"]``: the option that named its
     dataset), its frames of this kind counted (one file of darks and flats: one entry)."""
     from radiokit.calibrate import CalibrationInput, pixel_layout, value_scaling
@@ -539,8 +539,10 @@ def _stack(
                     layouts[str(p)] = pixel_layout(src.meta)
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
                 keys = src.meta.get("image_key")
+                # one entry per file and dataset: two datasets of one file (--dark-dataset d --flat-dataset f) are two
+                where = (str(p), src.meta.get("dataset"))
                 used = (
-                    inputs.setdefault(str(p), CalibrationInput.of(p, src.meta, option)) if inputs is not None else None
+                    inputs.setdefault(where, CalibrationInput.of(p, src.meta, option)) if inputs is not None else None
                 )
                 for i in range(len(src)):
                     if key is None or keys is None or keys[i] == key:

@@ -235,3 +235,16 @@ def test_an_8_bit_copy_of_a_16_bit_image_is_flagged_with_the_reason(tmp_path):
     assert "the images are uint16 and uint8: their values are not of one scale" in res.stdout, res.stdout
     res = run_cli("register", "i16.tif", "i8x257.tif", "-o", "g.h5", "-q", cwd=tmp_path)
     assert res.returncode == 0 and "not of one scale" not in res.stdout, (res.stdout, res.stderr)
+
+
+def test_two_datasets_of_one_file_are_two_inputs(tmp_path):
+    """Darks and flats in two datasets of one file (--dark-dataset, --flat-dataset) are recorded
+    as two inputs, each with its dataset, option and frames."""
+    darks, flats = _darks_flats(4)
+    with h5py.File(tmp_path / "both.h5", "w") as f:
+        f["d"], f["f"] = darks, flats[:3]
+    out = tmp_path / "cal.h5"
+    args = ["--dark", "both.h5", "--flat", "both.h5", "--dark-dataset", "d", "--flat-dataset", "f"]
+    assert run_cli("calibrate", *args, "-o", out, "-q", cwd=tmp_path).returncode == 0
+    got = [(i["dataset"], i["option"], i["darks"], i["flats"]) for i in Calibration.load(out).provenance["inputs"]]
+    assert got == [("d", "--dark-dataset", 4, 0), ("f", "--flat-dataset", 0, 3)]
