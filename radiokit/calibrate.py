@@ -15,6 +15,7 @@ import os
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
+from datetime import UTC
 from pathlib import Path
 
 import h5py
@@ -29,6 +30,8 @@ __all__ = [
     "PixelFlag",
     "Thresholds",
     "Calibration",
+    "CalibrationInput",
+    "input_lines",
     "robust_average",
     "CalibrationWarning",
     "CalibrationRefused",
@@ -861,6 +864,9 @@ class Calibration:
         _merge_recorded_mask(cal, path, src.meta.get("pixel_mask"))
         cal.provenance.update(pixel_layout(src.meta))
         cal.provenance["source"] = str(path)
+        read_from = CalibrationInput.of(path, src.meta)
+        read_from.darks, read_from.flats = int(sel[ImageKey.DARK].size), int(sel[ImageKey.FLAT].size)
+        cal.provenance["inputs"] = [read_from.record()]
         check_currents(path, src.meta, sel[ImageKey.FLAT])
         for name, unit in (("current", "ua"), ("voltage", "kv")):  # what the flats saw, where recorded
             values = np.asarray(src.meta.get(name, np.full(len(keys), np.nan)), float)[sel[ImageKey.FLAT]]
@@ -1848,6 +1854,105 @@ def _dark_noise(darks) -> float | None:
         return None
     sample = darks[:, :: max(1, darks.shape[1] // 64)]
     return float(np.median(np.std(sample, axis=0, ddof=1)))
+
+
+@dataclass
+class CalibrationInput:
+    """One file a calibration's darks and flats were read from, as its provenance records it
+    (``provenance["inputs"]``, :meth:`record`). Why: a calibration named its files at most as
+    given (``dark_files``), neither the HDF5 dataset read in them nor which file that was, so a
+    user could not tell later which frames had made it. The file's size and modification time
+    tell a file replaced since from the one read; no content hash: an experiment file's
+    projections are never read to calibrate, and hashing them would read them all.
+
+    Attributes
+    ----------
+    path : str
+        The file as given (on the command line, or to the library).
+    resolved : str
+        Its absolute path, symbolic links resolved.
+    format : str
+        How it was read (``"hdf5"``, ``"tiff"``, ``"experiment"``, ...).
+    dataset : str or None
+        The HDF5 dataset its frames were read from; None for other formats.
+    option : str or None
+        The option that named ``dataset`` (``"--dark-dataset"``, ``"--dataset"``); None where the
+        reader found it by the file's own layout.
+    darks, flats : int
+        Frames of it averaged as darks and as flats.
+    size_bytes : int or None
+        Its size when read.
+    modified : str or None
+        Its modification time when read, ISO 8601 in UTC.
+    """
+
+    path: str
+    resolved: str
+    format: str
+    dataset: str | None = None
+    option: str | None = None
+    darks: int = 0
+    flats: int = 0
+    size_bytes: int | None = None
+    modified: str | None = None
+
+    @classmethod
+    def of(cls, path, meta: dict, option: str | None = None) -> CalibrationInput:
+        """The file ``path`` as its reader's ``meta`` (a source's or a :class:`radiokit.io.Frames`')
+        describes it, no frames counted yet."""
+        from datetime import datetime
+
+        from radiokit.io._experiment import FRAMES
+
+        fmt = str(meta.get("format", "unknown"))
+        dataset = meta.get("dataset") or (f"/{FRAMES}" if fmt == "experiment" else None)
+        try:
+            st = os.stat(path)
+            size = int(st.st_size)
+            modified = datetime.fromtimestamp(st.st_mtime, UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+        except OSError:  # (read a moment ago: gone since, or never a plain file)
+            size = modified = None
+        return cls(
+            str(path), str(Path(path).resolve()), fmt, dataset, option if dataset else None, 0, 0, size, modified
+        )
+
+    def record(self) -> dict:
+        """This input as the provenance's JSON object."""
+        return asdict(self)
+
+
+def input_lines(provenance: dict) -> list[str]:
+    """What a calibration was read from, one line per file, for ``radiokit info``: its
+    ``provenance["inputs"]`` (:class:`CalibrationInput`), or, for a calibration made before they
+    were recorded, the files it names (``dark_files``, ``flat_files``, ``source``) and that the
+    rest is not recorded. The file's JSON is anyone's: what is not as radiokit writes it is said
+    as unreadable, never raised."""
+    inputs = provenance.get("inputs")
+    if inputs is None:
+        named = [
+            f"{what} {', '.join(map(str, files))}"
+            for what, files in (("darks", provenance.get("dark_files")), ("flats", provenance.get("flat_files")))
+            if isinstance(files, list) and files
+        ]
+        if isinstance(provenance.get("source"), str):
+            named.append(f"darks and flats of {provenance['source']}")
+        said = "; ".join(named) + " (as given; " if named else "not recorded ("
+        return [f"{said}made before radiokit recorded its datasets, sizes and times)"]
+    if not isinstance(inputs, list) or not all(isinstance(i, dict) for i in inputs):
+        return ["unreadable: provenance inputs is not a list of objects"]
+    lines = []
+    for i in inputs:
+        counts = " and ".join(
+            f"{i[k]} {k}"
+            for k in ("darks", "flats")
+            if isinstance(i.get(k), int) and not isinstance(i[k], bool) and i[k]
+        )
+        where = f"dataset {i['dataset']}" if i.get("dataset") else str(i.get("format", "?"))
+        where += f" ({i['option']})" if i.get("option") else ""
+        file = f"{i.get('size_bytes')} bytes, modified {i.get('modified')}" if i.get("size_bytes") is not None else ""
+        resolved = f"; {i['resolved']}" if i.get("resolved") not in (None, i.get("path")) else ""
+        lines.append(f"{i.get('path')}: {where}, {counts or 'no frames'}" + (f"; {file}" if file else "") + resolved)
+    return lines
 
 
 def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) -> dict:

@@ -25,6 +25,7 @@ try:  # the second the imports take: Ctrl-C there printed an import's traceback 
     import numpy as np
 
     from radiokit import __version__
+    from radiokit._names import shown
     from radiokit.errors import RadiokitError
 except KeyboardInterrupt:
     print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
@@ -54,7 +55,35 @@ def _raw_hints(args) -> dict:
         hints["shape"] = tuple(args.shape)
     if getattr(args, "allow_external", False):
         hints["allow_external"] = True
+    if getattr(args, "narrow_frames", False):
+        hints["narrow_frames"] = True
     return hints
+
+
+#: --narrow-frames: a stack whose last axis is far the shortest is refused as stored rows x cols x n
+_NARROW_HELP = (
+    "read an HDF5 stack (n, rows, cols) whose cols are far fewer than its n and rows as it is stored (refused "
+    "otherwise: such a stack is mostly rows x cols x n, numpy's dstack)"
+)
+
+
+def _dataset_for_hdf5(hints: dict, paths) -> dict:
+    """``hints`` with ``--dataset`` applied to the HDF5 files among ``paths`` only, their TIFFs
+    (raw, ITEX) reading as ever (the reader's ``hdf5_dataset``). Why: ``info`` and ``correct`` of
+    TIFF and HDF5 files together refused ``--dataset`` for the TIFF, so no one command read them
+    (s50). Where none of them is HDF5 it stays ``dataset``, which the reader refuses naming the
+    file: an option that applies to nothing given is a mistake to say, not to drop."""
+    from radiokit.io import FormatError, sniff
+
+    def hdf5(path) -> bool:
+        try:
+            return sniff(path) == "hdf5"
+        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
+            return False
+
+    if not hints.get("dataset") or not any(hdf5(p) for p in paths):
+        return hints
+    return {k: v for k, v in hints.items() if k != "dataset"} | {"hdf5_dataset": hints["dataset"]}
 
 
 def _add_raw_hints(p):
@@ -77,6 +106,7 @@ def _add_raw_hints(p):
         help="read data in other files: HDF5 external links, external raw storage and virtual datasets, "
         "and the planes a multi-file OME-TIFF keeps in the files beside it",
     )
+    g.add_argument("--narrow-frames", action="store_true", help=_NARROW_HELP)
 
 
 # -- info --------------------------------------------------------------------------------------
@@ -140,10 +170,8 @@ def _summary(meta: dict) -> dict:
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
         out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
-    elif fmt == "calibration":  # the lines it fills, named as calibrate named them
-        from radiokit.calibrate import line_summary
-
-        out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), meta.get("provenance", {}))
+    elif fmt == "calibration":
+        out = _calibration_summary(meta)
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames
         keys = np.asarray(meta.get("image_key", []))
         out = {kind: int(np.sum(keys == k)) for kind, k in (("projections", 0), ("flats", 1), ("darks", 2))}
@@ -157,6 +185,16 @@ def _summary(meta: dict) -> dict:
     elif out.get("pixel_size_mm") is None and meta.get("pixel_size_unusable"):  # read and ignored: why
         out["pixel_size"] = f"unusable, {meta['pixel_size_unusable']}"
     return {k: v for k, v in out.items() if v not in (None, "", {})}
+
+
+def _calibration_summary(meta: dict) -> dict:
+    """A calibration file's lines it fills, named as calibrate named them, and the files and
+    datasets its darks and flats were read from (``made from``, one a line)."""
+    from radiokit.calibrate import input_lines, line_summary
+
+    prov = meta.get("provenance", {})
+    out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), prov)
+    return out | {"made from": input_lines(prov)}
 
 
 #: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
@@ -300,9 +338,10 @@ def cmd_info(args) -> int:
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
     # JSON has an entry per file given, a bad one's {"file", "error"}, so that its reader sees it too
+    hints = _dataset_for_hdf5(_raw_hints(args), args.files)
     for path in args.files:
         try:
-            with open_frames(path, **_raw_hints(args)) as src:
+            with open_frames(path, **hints) as src:
                 reports.append(_describe(path, src, args.all, sample))
         except Exception as exc:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
@@ -315,7 +354,7 @@ def cmd_info(args) -> int:
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
             reports[-1]["error"] = f"{path}: no frames"
-            print(f"radiokit info: {path}: no frames", file=sys.stderr)
+            print(f"radiokit info: {shown(path)}: no frames", file=sys.stderr)
     status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
         from radiokit._json import strict
@@ -325,7 +364,7 @@ def cmd_info(args) -> int:
     for rep in reports:
         if "frames" not in rep:  # its one line is on stderr
             continue
-        print(f"{rep['file']}")
+        print(shown(rep["file"]))
         print(f"  format     {rep['format']}")
         none = "" if rep["frames"] else " (no frames)"
         print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
@@ -346,8 +385,25 @@ def cmd_info(args) -> int:
             held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
-            print(f"  {key:<10} {_escaped(value)}")
+            if key == "made from":  # a calibration's input files, one a line
+                _print_lines(key, value)
+            else:
+                print(f"  {key:<10} {_escaped(value)}")
     return status
+
+
+#: the most lines ``info`` prints of one item (a calibration's input files) before saying how many more
+_MOST_LINES = 10
+
+
+def _print_lines(key: str, lines: list) -> None:
+    """``info``'s item ``key`` of several ``lines``, one a line under it: a calibration made from
+    300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
+    shown = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
+    for k, line in enumerate(shown):
+        print(f"  {key if k == 0 else '':<10} {_escaped(line)}")
+    if len(shown) < len(lines):
+        print(f"  {'':<10} ... and {len(lines) - len(shown)} more (radiokit info --json lists them all)")
 
 
 # -- calibrate ---------------------------------------------------------------------------------
@@ -447,20 +503,25 @@ def _in_given_order(errors, paths) -> list:
 
 
 def _stack(
-    paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None, scalings=None
+    paths, hints, key=None, progress=False, origins=None, bit_depths=None, layouts=None, scalings=None, inputs=None
 ) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
     bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
     pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
-    file's :func:`radiokit.calibrate.value_scaling`."""
-    from radiokit.calibrate import pixel_layout, value_scaling
+    file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's (and dataset's)
+    :class:`radiokit.calibrate.CalibrationInput` (``hints["option"]``: the option that named its
+    dataset), its frames of this kind counted (one file of darks and flats: one entry)."""
+    from radiokit.calibrate import CalibrationInput, pixel_layout, value_scaling
     from radiokit.io import FormatError, check_budget, open_frames
     from radiokit.progress import tqdm
 
     frames, total, first = [], 0, None
     origins = [] if origins is None else origins
     what = "darks" if key == 2 else "flats" if key == 1 else "frames"
+    kind = "darks" if key == 2 else "flats"  # (what an input's frames counted as)
+    hints = dict(hints)
+    option = hints.pop("option", None)
     with tqdm(desc=f"read {what}", unit="frame", disable=not progress) as bar:  # closed on an error too
         for p in paths:
             with open_frames(p, **hints) as src:
@@ -478,10 +539,17 @@ def _stack(
                     layouts[str(p)] = pixel_layout(src.meta)
                 check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
                 keys = src.meta.get("image_key")
+                # one entry per file and dataset: two datasets of one file (--dark-dataset d --flat-dataset f) are two
+                where = (str(p), src.meta.get("dataset"))
+                used = (
+                    inputs.setdefault(where, CalibrationInput.of(p, src.meta, option)) if inputs is not None else None
+                )
                 for i in range(len(src)):
                     if key is None or keys is None or keys[i] == key:
                         frames.append(src[i])
                         origins.append((p, i))
+                        if used is not None:
+                            setattr(used, kind, getattr(used, kind) + 1)
                         bar.update()
                         if frames[-1].dtype.kind == "f" and not np.isfinite(frames[-1]).all():  # name where
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
@@ -494,7 +562,7 @@ def _stack(
 def _hdf5_name(path) -> None:
     """An HDF5 output must be named so: under ``out.tif`` other programs would take it for a TIFF."""
     if Path(path).suffix.lower() not in (".h5", ".hdf5", ".hdf", ".nxs", ".nx"):
-        raise ValueError(f"{path}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
+        raise ValueError(f"{shown(path)}: the output is HDF5; name it .h5 (or .hdf5, .nxs)")
 
 
 def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
@@ -546,7 +614,7 @@ def cmd_calibrate(args) -> int:
         tmp.write_bytes(image.getbuffer())
     p = cal.provenance
     print(
-        f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {args.output}"
+        f"calibration {cal.shape[0]}x{cal.shape[1]} from {p['n_darks']} darks and {p['n_flats']} flats -> {shown(args.output)}"
     )
     noise = p.get("dark_noise_counts")  # None from one dark: no temporal noise to measure (0.0 is a value)
     noise = "not measured (one dark)" if noise is None else f"{noise:.2f} counts"
@@ -601,10 +669,33 @@ def _calibration_from_files(args, th):
     _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
     _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
     hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
-    origins, bits, layouts, scalings = {"dark": [], "flat": []}, {}, {}, {}
+    origins, bits, layouts, scalings, inputs = {"dark": [], "flat": []}, {}, {}, {}, {}
     _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
-    darks = _stack(args.dark, hints["dark"], 2, _progress(args), origins["dark"], bits, layouts, scalings)
-    flats = _stack(args.flat, hints["flat"], 1, _progress(args), origins["flat"], bits, layouts, scalings)
+    # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
+    said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}
+    said = {k: opt if hints[k].get("dataset") else None for k, opt in said.items()}  # else the file's own layout
+    darks = _stack(
+        args.dark,
+        hints["dark"] | {"option": said["dark"]},
+        2,
+        _progress(args),
+        origins["dark"],
+        bits,
+        layouts,
+        scalings,
+        inputs,
+    )
+    flats = _stack(
+        args.flat,
+        hints["flat"] | {"option": said["flat"]},
+        1,
+        _progress(args),
+        origins["flat"],
+        bits,
+        layouts,
+        scalings,
+        inputs,
+    )
     declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
     if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
         raise ValueError(
@@ -622,6 +713,7 @@ def _calibration_from_files(args, th):
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
+    cal.provenance["inputs"] = [one.record() for one in inputs.values()]
     return cal
 
 
@@ -650,14 +742,14 @@ def cmd_correct(args) -> int:
 
     check_output(args.output, overwrite=args.overwrite, inputs=_inputs(args, [*args.frames, args.cal]))
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
-        raise ValueError(f"{args.output}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+        raise ValueError(f"{shown(args.output)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
         _an_experiment(args.frames[0], _raw_hints(args))
         cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
-        print(f"calibrated from the darks and flats of {args.frames[0]}")
+        print(f"calibrated from the darks and flats of {shown(args.frames[0])}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
     summary = correct_files(
@@ -667,10 +759,10 @@ def cmd_correct(args) -> int:
         domain=args.domain,
         progress=_progress(args),
         overwrite=args.overwrite,
-        **_raw_hints(args),
+        **_dataset_for_hdf5(_raw_hints(args), args.frames),
     )
     print(
-        f"{summary['frames']} frame(s) -> {summary['output']} ({summary['domain']}) "
+        f"{summary['frames']} frame(s) -> {shown(summary['output'])} ({summary['domain']}) "
         f"at {summary['frames_per_second']:.1f} frames/s"
     )
     saturated = f"{summary['saturated']} saturated"
@@ -688,12 +780,13 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame"):
+def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame", narrow_frames=False):
     """Frame ``index`` of ``path`` as float32, the index counted from the start (-1 is the last
     frame: the same-image check compares frames, not how they were written), and the file's metadata."""
     from radiokit.io import open_frames
 
     hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
+    hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
             raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
@@ -789,6 +882,7 @@ def _reader_advice(exc) -> dict:
 _PROCESS_ADVICE = {
     "allow_external": "(radiokit process reads no data outside the experiment file: copy the linked data into it first)",
     "dataset": "radiokit process reads experiment files only (radiokit correct --dataset PATH reads one)",
+    "narrow_frames": "radiokit process reads experiment files only, their frames stored (n, rows, cols)",
 }
 
 
@@ -812,10 +906,20 @@ def _register_inputs(args):
     from radiokit.io import check_output, check_same_pixel_size
 
     fixed, fixed_frame, fixed_meta = _one_image(
-        args.fixed, args.fixed_frame, args.fixed_dataset or args.dataset, args.allow_external
+        args.fixed,
+        args.fixed_frame,
+        args.fixed_dataset or args.dataset,
+        args.allow_external,
+        "--fixed-frame",
+        args.narrow_frames,
     )
     moving, moving_frame, moving_meta = _one_image(
-        args.moving, args.moving_frame, args.moving_dataset or args.dataset, args.allow_external, "--moving-frame"
+        args.moving,
+        args.moving_frame,
+        args.moving_dataset or args.dataset,
+        args.allow_external,
+        "--moving-frame",
+        args.narrow_frames,
     )
     # a field in pixels between two pitches is a scaling, not the sample's motion
     check_same_pixel_size(
@@ -855,7 +959,8 @@ def _register_inputs(args):
         if args.png.suffix.lower().lstrip(".") not in kinds:
             raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
     _check_register_memory(args, fixed)
-    return fixed, moving, mask
+    types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored (_types_hint)
+    return fixed, moving, mask, types
 
 
 #: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
@@ -892,7 +997,7 @@ def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord
     from radiokit.register import register, with_default_preset
 
-    fixed, moving, mask = _register_inputs(args)
+    fixed, moving, mask, types = _register_inputs(args)
     _check_preset(args)
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
@@ -931,7 +1036,7 @@ def cmd_register(args) -> int:
         n = reg.options["clipped"]
         print(
             "clipped before registering, lying over ten of the pair's 0.1-99.9 % ranges beyond it (hot or "
-            f"defective pixels?): {n['fixed']} pixels of {args.fixed}, {n['moving']} of {args.moving}"
+            f"defective pixels?): {n['fixed']} pixels of {shown(args.fixed)}, {n['moving']} of {shown(args.moving)}"
         )
     if "regularisation_check" in reg.options:  # the second, differently regularised registration
         second = reg.options["regularisation_check"]
@@ -943,9 +1048,12 @@ def cmd_register(args) -> int:
                 else "not run (already flagged)"
             )
         )
-    print(f"wrote {args.output}" + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}"))
+    print(
+        f"wrote {shown(args.output)}"
+        + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{_types_hint(*types)}")
+    )
     if args.png:
-        print(f"figure {args.png}")
+        print(f"figure {shown(args.png)}")
     return 0 if q.ok else 1
 
 
@@ -993,7 +1101,7 @@ def _write_register_outputs(args, record, draw) -> int | None:
     except KeyboardInterrupt as exc:
         if not done:
             raise
-        both = f"{args.output} and {args.png} were" if args.png else f"{args.output} was"
+        both = f"{shown(args.output)} and {shown(args.png)} were" if args.png else f"{shown(args.output)} was"
         print(f"radiokit register: interrupted once {both} written (complete, this run's)", file=sys.stderr)
         return exit_status(exc)
     return None
@@ -1015,6 +1123,23 @@ def _negative_hint(q) -> str:
         f"; the images are each other's negative (NCC {q.ncc_before:.2f} before registering): one in line "
         "integrals -ln(I/I0), the other in counts or transmission? register two of one convention "
         "(radiokit correct --domain)"
+    )
+
+
+def _types_hint(fixed_type: str, moving_type: str) -> str:
+    """Why a flagged pair of integer images of two sizes (uint8 against uint16) may be judged
+    unregistrable as given: an 8-bit copy of a 16-bit image (a viewer's export) holds its values
+    about 257 times smaller, and the checks, which compare the registered pair's intensities with
+    the noise, read that difference as structure left misaligned ("did not find the motion")
+    whatever the field. s50: such a copy of one image, no motion, was registered by rc with a zero
+    field (max |d| 0.00 px) and flagged; its 16-bit copy (x 257, quantised alike) was not. The
+    flag stays: no check can judge intensities of two scales."""
+    kinds = [np.dtype(t) if t else None for t in (fixed_type, moving_type)]
+    if None in kinds or any(k.kind not in "ui" for k in kinds) or kinds[0].itemsize == kinds[1].itemsize:
+        return ""
+    return (
+        f"; the images are {kinds[0]} and {kinds[1]}: their values are not of one scale (an 8-bit copy of a "
+        "16-bit image?), which the checks compare; register two images of one type"
     )
 
 
@@ -1172,7 +1297,7 @@ def _check_process_files(args) -> None:
                 )
     if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
         raise ValueError(
-            f"-o {args.output}: -o is a results folder, not a file; name it without {args.output.suffix} "
+            f"-o {shown(args.output)}: -o is a results folder, not a file; name it without {args.output.suffix} "
             "(results.h5, results.json and report.html are written inside)"
         )
 
@@ -1295,7 +1420,7 @@ def _process_many(args, cfg) -> int:
     for r in results:
         if "error" in r:
             failed += 1
-            print(f"{r['source']}: error: {_batch_error(r, args)}", file=sys.stderr)
+            print(f"{shown(r['source'])}: error: {_batch_error(r, args)}", file=sys.stderr)
         else:
             files = {}
             if "output" in r:  # as one file's run prints them
@@ -1337,7 +1462,7 @@ def _print_headline(record, files, prefix=""):
     reason = (main.change_ratio_reason or {}).get(dom)
     cr = reason if reason else value_pm(main.change_ratio[dom], (main.change_ratio_se or {}).get(dom), 3)
     print(
-        f"{prefix}{record.source}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
+        f"{prefix}{shown(record.source)}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
         f"{cr}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
@@ -1357,7 +1482,7 @@ def _print_headline(record, files, prefix=""):
         _print_headline(record.control, {}, prefix="control ")
     for name in ("report", "results_json"):
         if name in files:
-            print(f"  {name.replace('_', '.')}: {files[name]}")
+            print(f"  {name.replace('_', '.')}: {shown(files[name])}")
 
 
 # -- parser ------------------------------------------------------------------------------------
@@ -1497,6 +1622,7 @@ def _add_register_inputs(p):
         action="store_true",
         help="read data in other files: HDF5 links and storage, a multi-file OME-TIFF's other files",
     )
+    p.add_argument("--narrow-frames", action="store_true", help=_NARROW_HELP)
 
 
 def _add_register(sub):

@@ -1,5 +1,7 @@
 """The exceptions radiokit raises on purpose."""
 
+from radiokit._names import shown
+
 
 class RadiokitError(Exception):
     """Base class of every error radiokit raises on purpose."""
@@ -19,7 +21,7 @@ class FormatError(RadiokitError, ValueError):
         self.path = str(path)
         self.problem = problem
         self.advice = dict(advice or {})
-        super().__init__(f"{self.path}: {problem}")
+        super().__init__(f"{shown(self.path)}: {problem}")  # a newline in its name printed raw (s50)
 
     def __reduce__(self):
         # an exception is rebuilt from its args, the whole message: the path and the fields were lost

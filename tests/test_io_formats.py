@@ -1782,12 +1782,13 @@ def test_one_dataset_hint_for_inputs_of_two_layouts_names_the_file_lacking_it(tm
     assert not (tmp_path / "c.h5").exists()
 
 
-def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
+def test_an_hdf5_stack_stored_rows_cols_n_is_refused_and_a_tiff_warned_of(tmp_path):
     """Found by trying other labs' files: frames stacked along the last axis (numpy's dstack,
     IDL, Fortran writers) read as rows-many narrow frames, (64, 80, 5) as 64 frames of 80 x 5,
-    with no word; every command then worked on strips. A stack whose last axis is far the shortest
-    is warned of, naming the reading (a TIFF written from such an array too); a plain (n, rows,
-    cols) stack is not."""
+    with no word; every command then worked on strips. An HDF5 stack whose last axis is far the
+    shortest is refused, naming its dataset and shape (s50: a warning alone left every command
+    working on strips), and read as stored with ``narrow_frames=True``; a TIFF written from such
+    an array is warned of; a plain (n, rows, cols) stack is neither."""
     import warnings
 
     frames = _frames(5, 64, 80)
@@ -1796,8 +1797,11 @@ def test_an_hdf5_stack_stored_rows_cols_n_is_warned_of(tmp_path):
         f.create_dataset("stack", data=np.dstack(list(frames)))
         f.create_dataset("plain", data=frames)
         f.create_dataset("few", data=frames[:2])
-    with pytest.warns(UserWarning, match=r"64 frames of 80x5.*rows x cols x n"):
+    with pytest.raises(FormatError, match=r"dstack\.h5: dataset stack has shape 64x80x5, .* stored rows x cols x n"):
         read(path, dataset="stack")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read(path, dataset="stack", narrow_frames=True).data, np.dstack(list(frames)))
     tifffile.imwrite(tmp_path / "dstack.tif", np.dstack(list(frames)), photometric="minisblack")  # 64 pages
     with pytest.warns(UserWarning, match=r"64 frames of 80x5"):
         read(tmp_path / "dstack.tif")

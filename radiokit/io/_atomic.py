@@ -113,7 +113,9 @@ class OutputError(RadiokitError, OSError):
         OSError.__init__(self, err, problem)
 
     def __str__(self):
-        return f"{self.path}: {self.problem}"
+        from radiokit._names import shown
+
+        return f"{shown(self.path)}: {self.problem}"
 
 
 class OutputExistsError(OutputError, FileExistsError):

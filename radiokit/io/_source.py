@@ -223,7 +223,18 @@ class FrameSource:
     so iterating over a long stack holds one frame in memory at a time.
     """
 
-    def __init__(self, path, *, format=None, dataset=None, allow_external=False, budget=None, **hints):
+    def __init__(
+        self,
+        path,
+        *,
+        format=None,
+        dataset=None,
+        hdf5_dataset=None,
+        allow_external=False,
+        budget=None,
+        narrow_frames=False,
+        **hints,
+    ):
         if not isinstance(path, (str, os.PathLike)):  # pathlib's own words named no argument
             already = ": frames already in memory need no reading" if hasattr(path, "shape") else ""
             raise TypeError(f"expected a file path (str or os.PathLike), got {type(path).__name__}{already}")
@@ -232,25 +243,8 @@ class FrameSource:
         self._reading_all = False  # read_all: the proportion judged over every frame, not each
         self._allow_external = bool(allow_external)
         self._budget = budget
-        unknown = set(hints) - _RAW_HINTS
-        if unknown:
-            raise TypeError(
-                f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}"
-            )
-        if format is not None and format not in FORMATS:
-            raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
-        _check_file(self.path)
-        self.format = format or sniff(self.path)
-        if dataset and self.format != "hdf5":  # h5py's "file signature not found" named neither
-            what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(self.format, "not HDF5 (no HDF5 signature)")
-            raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
-        if self.format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
-            # Geometry hints only make sense for headerless data.
-            raise FormatError(
-                self.path,
-                f"{self.format} files carry their own geometry; hints {sorted(hints.keys() - _ANY_FORMAT_HINTS)} "
-                "apply to raw files only",
-            )
+        self.format = self._format_for(format, dataset, hints)
+        dataset = dataset or (hdf5_dataset if self.format == "hdf5" else None)  # (other formats: ignored)
         self._fh = self._tif = self._h5 = None
         self._mm_notes: list[str] = []  # what check_mmstack_slots says of an acquisition stopped early
         self._siblings = {}  # a multi-file OME-TIFF's other files, by path, open while this is
@@ -267,8 +261,13 @@ class FrameSource:
                     self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
                 )
             # MATLAB's order is read as MATLAB shows it; frames of the axes a tifffile writer gave, as given
-            if self.format in ("tiff", "hdf5") and not self._transposed and not self._axes_given():
-                _warn_frames_last(self.path, self.n, self.frame_shape)
+            if (
+                self.format in ("tiff", "hdf5")
+                and not self._transposed
+                and not self._axes_given()
+                and not narrow_frames
+            ):
+                self._judge_frames_last()
             if 0 in self.frame_shape:  # an HDF5 dataset may declare it; nothing to read or reduce
                 raise FormatError(self.path, f"frames of {self.frame_shape[0]}x{self.frame_shape[1]}: no pixels")
             check_budget(
@@ -285,6 +284,55 @@ class FrameSource:
             raise FormatError(self.path, f"cannot be read as {self.format}: {_why(exc)}") from exc
         self.meta.setdefault("format", self.format)
         self.meta["path"] = str(self.path)
+
+    def _format_for(self, format, dataset, hints) -> str:
+        """The file's format (``format``, else :func:`sniff`'s), once the hints given to read it
+        are ones it takes."""
+        unknown = set(hints) - _RAW_HINTS
+        if unknown:
+            raise TypeError(
+                f"read() got unknown hints {sorted(unknown)}; known: {sorted(_RAW_HINTS | {'format', 'dataset'})}"
+            )
+        if format is not None and format not in FORMATS:
+            raise FormatError(self.path, f"format={format!r}: expected one of {FORMATS}")
+        _check_file(self.path)
+        format = format or sniff(self.path)
+        if dataset and format != "hdf5":  # h5py's "file signature not found" named neither
+            what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(format, "not HDF5 (no HDF5 signature)")
+            raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
+        if format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
+            # Geometry hints only make sense for headerless data.
+            raise FormatError(
+                self.path,
+                f"{format} files carry their own geometry; hints {sorted(hints.keys() - _ANY_FORMAT_HINTS)} "
+                "apply to raw files only",
+            )
+        return format
+
+    def _judge_frames_last(self) -> None:
+        """Refuse an HDF5 stack that looks stored rows x cols x n (:func:`_frames_last`), naming
+        its dataset and shape; warn of a TIFF's. Why refused: read as (n, rows, cols), a (512, 512,
+        5) dataset was 512 frames of 512 x 5, strips of every image, which every command then
+        worked on with only a warning; an HDF5 dataset's shape is the writer's own statement, and
+        the user names it (``narrow_frames=True`` reads it as stored). A TIFF's pages are its
+        frames as written, and it keeps the warning."""
+        if not _frames_last(self.n, self.frame_shape):
+            return
+        if self.format == "tiff":
+            _warn_frames_last(self.path, self.n, self.frame_shape)
+            return
+        rows, cols = self.frame_shape
+        name = self.meta.get("dataset") or getattr(self._ds, "name", None) or "its frames"
+        said = (
+            f"or, if they are {self.n} frames of {rows}x{cols}, read them so with narrow_frames=True (--narrow-frames)"
+        )
+        raise FormatError(
+            self.path,
+            f"dataset {name} has shape {self.n}x{rows}x{cols}, read as (n, rows, cols) {self.n} frames of {rows}x{cols}; "
+            f"its last axis far the shortest, it looks like {cols} frames of {self.n}x{rows} stored rows x cols x n (numpy's dstack, IDL, "
+            f"Fortran): not read; write it as (n, rows, cols) (numpy.moveaxis(stack, -1, 0)), {said}",
+            advice={"narrow_frames": said},
+        )
 
     def _limit_frames(self, n):
         """Apply an ``n=`` hint to a file that knows its own frame count."""
@@ -1992,6 +2040,9 @@ def read(path, /, **hints) -> Frames:
         skip) and ``n`` (frames to read); ``panel_shape`` ((rows, cols): the panel's frames as a
         calibration gives them) settles a raw size that fits several presets, and other formats
         let it pass;
+        ``hdf5_dataset`` as ``dataset`` for an HDF5 file, ignored by other formats (one hint for a
+        command's HDF5 and TIFF files alike); ``narrow_frames=True`` to read a stack whose frames are far narrower than they are many
+        (an HDF5 stack whose last axis is far the shortest is refused as one stored rows x cols x n);
         ``allow_external=True`` to follow HDF5 external links, external raw storage and virtual
         datasets, and read a multi-file OME-TIFF's planes from the files beside it (refused by
         default: they make a file read other files); ``budget`` (bytes or
@@ -2340,18 +2391,25 @@ def _refuse_imagej_trimmed(path, first, pages, images) -> None:
 _THIN = 16
 
 
-def _warn_frames_last(path, n, shape) -> None:
-    """Warn of a stack of ``n`` frames of ``shape`` whose columns are far fewer than its frames and
-    rows, as frames stacked along the last axis (numpy's ``dstack``, IDL and Fortran writers; a
-    TIFF tifffile wrote from such an array) store rows x cols x n: read as (n, rows, cols), each
-    "frame" is a strip of every image, and every command then worked on strips without a word."""
+def _frames_last(n, shape) -> bool:
+    """Whether a stack of ``n`` frames of ``shape`` has columns far fewer than its frames and rows,
+    as frames stacked along the last axis (numpy's ``dstack``, IDL and Fortran writers; a TIFF
+    tifffile wrote from such an array) store rows x cols x n: read as (n, rows, cols), each
+    "frame" is a strip of every image."""
     rows, cols = shape
-    if cols < _THIN and min(n, rows) >= 64 and 8 * cols <= min(n, rows):
+    return cols < _THIN and min(n, rows) >= 64 and 8 * cols <= min(n, rows)
+
+
+def _warn_frames_last(path, n, shape) -> None:
+    """Warn of a stack that looks stored rows x cols x n (:func:`_frames_last`): every command
+    worked on strips without a word."""
+    rows, cols = shape
+    if _frames_last(n, shape):
         warnings.warn(
             f"{path}: reads as {n} frames of {rows}x{cols}; if it is a stack stored rows x cols x n ({cols} frames "
             f"of {n}x{rows}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
             UserWarning,
-            stacklevel=4,
+            stacklevel=5,
         )
 
 

@@ -1,0 +1,39 @@
+"""File names as messages print them."""
+
+from __future__ import annotations
+
+import unicodedata
+
+#: Unicode categories of the characters that move or hide text on a terminal: controls (a newline,
+#: an escape), line and paragraph separators, and formats (a bidirectional override). Not
+#: surrogates: a name's bytes that are not UTF-8 (lone surrogates in Python) print as ``\xNN``
+#: by the command's own output codec (radiokit.cli._names_as_bytes).
+_HIDING = ("Cc", "Cf", "Zl", "Zp")
+
+
+def shown(name) -> str:
+    """``name`` (a file's, or any text naming one) as a message prints it: as it is, unless it
+    holds a control character (a newline, an escape, a bidirectional override), then quoted and
+    escaped as Python's ``repr`` writes it, ``'out\\nx.h5'``.
+
+    Why: an output named ``"out\\nx.h5"`` was printed raw, ``-> out`` on one line and ``x.h5`` on
+    the next, so the name a user read was not the file's, and an escape sequence in a name
+    reached the terminal. Quoted only then: every plain name stays as the user typed it.
+
+    >>> shown("cal.h5"), shown("cal\\nx.h5")
+    ('cal.h5', "'cal\\\\nx.h5'")
+    """
+    text = str(name)
+    if not any(unicodedata.category(c) in _HIDING for c in text):
+        return text
+    escaped = (
+        "\\\\"
+        if c == "\\"
+        else "\\'"
+        if c == "'"
+        else c.encode("unicode_escape").decode("ascii")
+        if unicodedata.category(c) in _HIDING
+        else c
+        for c in text
+    )
+    return "'" + "".join(escaped) + "'"

@@ -1,0 +1,250 @@
+"""What the offline commands say of the files they read: where a calibration came from, stacks
+stored frames-last, ``--dataset`` over TIFF and HDF5 files mixed, and names with control
+characters. Real files (tifffile, h5py) written to ``tmp_path``, run through ``main``."""
+
+import json
+import os
+from datetime import UTC, datetime
+
+import h5py
+import numpy as np
+import tifffile
+from conftest import one_line_error, run_cli
+
+from radiokit.calibrate import Calibration
+from radiokit.io import ExperimentWriter, ImageKey
+
+ROWS, COLS = 48, 64
+
+
+def _darks_flats(n=5, seed=0):
+    rng = np.random.default_rng(seed)
+    darks = rng.normal(100, 2, (n, ROWS, COLS)).round().astype(np.uint16)
+    flats = rng.normal(3000, 20, (n, ROWS, COLS)).round().astype(np.uint16)
+    return darks, flats
+
+
+def _write_h5(path, name, data):
+    with h5py.File(path, "w") as f:
+        f[name] = data
+    return path
+
+
+def _mtime_utc(path) -> datetime:
+    return datetime.fromtimestamp(os.stat(path).st_mtime, UTC).replace(microsecond=0)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. a calibration records the files and datasets it was read from
+# ------------------------------------------------------------------------------------------------
+
+
+def test_a_calibration_records_each_input_file_its_dataset_and_frames(tmp_path):
+    """s50: a calibration named its files at most as given; which HDF5 dataset made it, and which
+    file that was, could not be told later. Each input is recorded: as given and resolved, the
+    dataset and the option naming it, the frames of each kind, its size and modification time;
+    and ``info`` of the calibration shows them."""
+    darks, flats = _darks_flats()
+    _write_h5(tmp_path / "darks.h5", "scan/dark", darks)
+    tifffile.imwrite(tmp_path / "flats_a.tif", flats[:3], photometric="minisblack")
+    tifffile.imwrite(tmp_path / "flats_b.tif", flats[3:], photometric="minisblack")
+    os.symlink(tmp_path / "flats_b.tif", tmp_path / "link.tif")
+    out = tmp_path / "cal.h5"
+    res = run_cli(
+        "calibrate", "--dark", "darks.h5", "--dark-dataset", "scan/dark",
+        "--flat", "flats_a.tif", "link.tif", "-o", out, "-q", cwd=tmp_path,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    inputs = Calibration.load(out).provenance["inputs"]
+    assert [i["path"] for i in inputs] == ["darks.h5", "flats_a.tif", "link.tif"]
+    assert [i["resolved"] for i in inputs] == [str(tmp_path / n) for n in ("darks.h5", "flats_a.tif", "flats_b.tif")]
+    assert [i["format"] for i in inputs] == ["hdf5", "tiff", "tiff"]
+    assert [(i["dataset"], i["option"]) for i in inputs] == [
+        ("scan/dark", "--dark-dataset"),
+        (None, None),
+        (None, None),
+    ]
+    assert [(i["darks"], i["flats"]) for i in inputs] == [(5, 0), (0, 3), (0, 2)]
+    for i in inputs:
+        assert i["size_bytes"] == os.path.getsize(i["resolved"])
+        recorded = datetime.strptime(i["modified"], "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=UTC)
+        assert abs((recorded - _mtime_utc(i["resolved"])).total_seconds()) <= 1
+    shown = run_cli("info", out)
+    assert shown.returncode == 0, shown.stderr
+    assert "made from  darks.h5: dataset scan/dark (--dark-dataset), 5 darks;" in shown.stdout, shown.stdout
+    assert "flats_a.tif: tiff, 3 flats;" in shown.stdout and "link.tif: tiff, 2 flats;" in shown.stdout, shown.stdout
+    assert str(tmp_path / "flats_b.tif") in shown.stdout  # where the link led
+    meta = json.loads(run_cli("info", "--json", out).stdout)[0]["metadata"]
+    assert len(meta["made from"]) == 3
+
+
+def test_one_file_of_darks_and_flats_is_one_input_with_both_counts(tmp_path):
+    """An experiment-style file given as --dark and --flat is one input: 4 darks and 6 flats, not
+    two entries; the dataset the reader found by the file's own layout has no option."""
+    darks, flats = _darks_flats(6)
+    path = tmp_path / "both.h5"
+    with ExperimentWriter(path, shape=(ROWS, COLS)) as w:
+        for f in darks[:4]:
+            w.append(f, image_key=ImageKey.DARK)
+        for f in flats:
+            w.append(f, image_key=ImageKey.FLAT)
+    out = tmp_path / "cal.h5"
+    assert run_cli("calibrate", "--dark", path, "--flat", path, "-o", out, "-q").returncode == 0
+    (one,) = Calibration.load(out).provenance["inputs"]
+    assert (one["format"], one["dataset"], one["option"]) == ("experiment", "/entry/instrument/detector/data", None)
+    assert (one["darks"], one["flats"]) == (4, 6)
+    # from the experiment file itself (the library's from_experiment, and calibrate --experiment)
+    assert run_cli("calibrate", "--experiment", path, "-o", tmp_path / "cal2.h5", "-q").returncode == 0
+    (two,) = Calibration.load(tmp_path / "cal2.h5").provenance["inputs"]
+    assert (two["path"], two["darks"], two["flats"]) == (str(path), 4, 6)
+
+
+def test_a_calibration_made_before_inputs_were_recorded_still_reads_and_says_so(tmp_path):
+    """Old calibrations (no ``inputs``) load and correct as before; ``info`` names what they do
+    record (the files as given) and that the rest is not; a crafted ``inputs`` is said unreadable,
+    never a traceback."""
+    darks, flats = _darks_flats()
+    cal = Calibration.from_frames(darks, flats)
+    cal.provenance["dark_files"], cal.provenance["flat_files"] = ["d.tif"], ["f.tif"]
+    cal.save(tmp_path / "old.h5")
+    assert "inputs" not in Calibration.load(tmp_path / "old.h5").provenance
+    res = run_cli("info", tmp_path / "old.h5")
+    assert res.returncode == 0, res.stderr
+    assert "made from  darks d.tif; flats f.tif (as given; made before radiokit recorded" in res.stdout, res.stdout
+    cal.provenance = {k: v for k, v in cal.provenance.items() if not k.endswith("_files")} | {"inputs": "x"}
+    cal.save(tmp_path / "odd.h5")
+    res = run_cli("info", tmp_path / "odd.h5")
+    assert res.returncode == 0 and "made from  unreadable" in res.stdout, (res.stdout, res.stderr)
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. an HDF5 stack stored frames-last is refused, not read as strips
+# ------------------------------------------------------------------------------------------------
+
+
+def test_an_hdf5_stack_stored_frames_last_is_refused_in_one_line_and_read_as_stored_on_request(tmp_path):
+    """s50: a (512, 512, 5) stack (numpy's dstack of 5 frames) was read as 512 frames of 512 x 5
+    with only a warning. Refused in one line naming the file, the dataset, its shape and the way
+    out; ``--narrow-frames`` reads it as stored. A stack of (n, rows, cols) frames is read as ever."""
+    rng = np.random.default_rng(1)
+    frames = rng.integers(1000, 3000, (5, 128, 96), dtype=np.uint16)
+    path = tmp_path / "stack.h5"
+    with h5py.File(path, "w") as f:
+        f["scan/frames"] = np.dstack(list(frames))  # (128, 96, 5)
+        f["scan/plain"] = frames
+    res = run_cli("info", path, "--dataset", "scan/frames")
+    one_line_error(res, "stack.h5", "scan/frames", "128x96x5", "5 frames of 128x96", "--narrow-frames")
+    res = run_cli("info", "--json", path, "--dataset", "scan/frames", "--narrow-frames")
+    assert res.returncode == 0, res.stderr
+    assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (128, [96, 5])
+    res = run_cli("info", "--json", path, "--dataset", "scan/plain")
+    assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (5, [128, 96])
+    # register reads one frame of each image: refused alike
+    res = run_cli("register", path, path, "--dataset", "scan/frames", "-o", tmp_path / "f.h5")
+    one_line_error(res, "stack.h5", "scan/frames", "--narrow-frames")
+    assert not (tmp_path / "f.h5").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. --dataset over TIFF and HDF5 files given together
+# ------------------------------------------------------------------------------------------------
+
+
+def test_dataset_applies_to_the_hdf5_files_among_tiffs_in_info_and_correct(tmp_path):
+    """s50: ``--dataset`` with TIFF and HDF5 files given together was refused for the TIFF, though
+    each format alone was read: it names the HDF5 files' dataset, the TIFFs read as ever. Where no
+    file given is HDF5 it is still refused, naming the file (an option applying to nothing)."""
+    darks, flats = _darks_flats()
+    cal = tmp_path / "cal.h5"
+    Calibration.from_frames(darks, flats).save(cal)
+    # transmission 0.5 and 0.25 exactly: log images ln 2 and ln 4 (the averaged dark and flat
+    # carry 2/sqrt(5) and 20/sqrt(5) counts of noise: about 1e-3 of ln, per pixel)
+    half = np.full((2, ROWS, COLS), 100 + 0.5 * 2900, np.uint16)
+    quarter = np.full((3, ROWS, COLS), 100 + 0.25 * 2900, np.uint16)
+    _write_h5(tmp_path / "a.h5", "scan/proj", half)
+    tifffile.imwrite(tmp_path / "b.tif", quarter, photometric="minisblack")
+    res = run_cli("info", "--json", tmp_path / "a.h5", tmp_path / "b.tif", "--dataset", "scan/proj")
+    assert res.returncode == 0, res.stderr
+    assert [(r["format"], r["frames"]) for r in json.loads(res.stdout)] == [("hdf5", 2), ("tiff", 3)]
+    out = tmp_path / "out.h5"
+    res = run_cli("correct", tmp_path / "a.h5", tmp_path / "b.tif", "--dataset", "scan/proj", "--cal", cal, "-o", out)
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out) as f:
+        got = f["entry/data/data"][()]
+    assert got.shape == (5, ROWS, COLS)
+    np.testing.assert_allclose(np.median(got, axis=(1, 2)), [np.log(2)] * 2 + [np.log(4)] * 3, atol=2e-3)
+    res = run_cli("info", tmp_path / "b.tif", "--dataset", "scan/proj")
+    one_line_error(res, "b.tif", "--dataset", "HDF5")
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. names holding control characters
+# ------------------------------------------------------------------------------------------------
+
+
+def test_a_name_with_a_control_character_is_printed_quoted_and_escaped(tmp_path):
+    """s50: an output named "cal\\nx.h5" was printed raw, ``-> cal`` on one line and ``x.h5`` on
+    the next; an escape in a name reached the terminal. Such names print as Python's repr writes
+    them, in what the command says on success and in its one-line errors; plain names as typed."""
+    darks, flats = _darks_flats()
+    tifffile.imwrite(tmp_path / "d.tif", darks, photometric="minisblack")
+    tifffile.imwrite(tmp_path / "f.tif", flats, photometric="minisblack")
+    out = tmp_path / "cal\nx.h5"
+    res = run_cli("calibrate", "--dark", "d.tif", "--flat", "f.tif", "-o", out.name, "-q", cwd=tmp_path)
+    assert res.returncode == 0 and out.is_file(), res.stderr
+    assert "-> 'cal\\nx.h5'\n" in res.stdout, res.stdout
+    assert "x.h5" not in res.stdout.replace("'cal\\nx.h5'", ""), res.stdout
+    one_line_error(run_cli("calibrate", "--dark", "d.tif", "--flat", "f.tif", "-o", out), "cal\\nx.h5': exists")
+    res = run_cli("info", out)
+    assert res.returncode == 0 and res.stdout.startswith(f"'{tmp_path}/cal\\nx.h5'\n  format"), res.stdout
+    tifffile.imwrite(tmp_path / "p.tif", darks[:1] + 1000, photometric="minisblack")
+    res = run_cli("correct", "p.tif", "--cal", out.name, "-o", "p\x1bx.tif", cwd=tmp_path)
+    assert res.returncode == 0 and "-> 'p\\x1bx.tif' (log)" in res.stdout, (res.stdout, res.stderr)
+    assert "\x1b" not in res.stdout + res.stderr
+    res = run_cli("correct", "p.tif", "--cal", "cal.h5", "-o", "q.tif", cwd=tmp_path)  # a plain name, as typed
+    one_line_error(res, "radiokit correct: cal.h5: no such file")
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. an 8-bit and a 16-bit copy of one image registered
+# ------------------------------------------------------------------------------------------------
+
+
+def test_an_8_bit_copy_of_a_16_bit_image_is_flagged_with_the_reason(tmp_path):
+    """s50: an 8-bit copy of a 16-bit image (no motion, its values 257 times smaller) registered
+    with a zero field but was flagged "did not find the motion": the checks compare the pair's
+    intensities, and a scale of 257 between them reads as structure left misaligned. The flag
+    stays (no check judges intensities of two scales) and says why; the 16-bit copy of the 8-bit
+    one (x 257, quantised alike) registers and passes: the quantisation is not what is flagged."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    n = 192
+    yy, xx = np.mgrid[:n, :n]
+    image = ndimage.gaussian_filter(rng.normal(0, 1, (n, n)), 3) + 0.8 * np.exp(
+        -((yy - 96) ** 2 + (xx - 80) ** 2) / (2 * 25**2)
+    )
+    image = (image - image.min()) / (image.max() - image.min())
+    i16 = np.round(1000 + image * 50000).astype(np.uint16)
+    i8 = np.round(i16 / 257).astype(np.uint8)
+    for name, data in (("i16.tif", i16), ("i8.tif", i8), ("i8x257.tif", i8.astype(np.uint16) * 257)):
+        tifffile.imwrite(tmp_path / name, data)
+    res = run_cli("register", "i16.tif", "i8.tif", "-o", "f.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "max |d| 0.00 px" in res.stdout  # the field found no motion, as there is none
+    assert "the images are uint16 and uint8: their values are not of one scale" in res.stdout, res.stdout
+    res = run_cli("register", "i16.tif", "i8x257.tif", "-o", "g.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 0 and "not of one scale" not in res.stdout, (res.stdout, res.stderr)
+
+
+def test_two_datasets_of_one_file_are_two_inputs(tmp_path):
+    """Darks and flats in two datasets of one file (--dark-dataset, --flat-dataset) are recorded
+    as two inputs, each with its dataset, option and frames."""
+    darks, flats = _darks_flats(4)
+    with h5py.File(tmp_path / "both.h5", "w") as f:
+        f["d"], f["f"] = darks, flats[:3]
+    out = tmp_path / "cal.h5"
+    args = ["--dark", "both.h5", "--flat", "both.h5", "--dark-dataset", "d", "--flat-dataset", "f"]
+    assert run_cli("calibrate", *args, "-o", out, "-q", cwd=tmp_path).returncode == 0
+    got = [(i["dataset"], i["option"], i["darks"], i["flats"]) for i in Calibration.load(out).provenance["inputs"]]
+    assert got == [("d", "--dark-dataset", 4, 0), ("f", "--flat-dataset", 0, 3)]
