@@ -125,6 +125,8 @@ __all__ = [
     "object_noise",
     "OBSERVED_PX",
     "affine_bound",
+    "affine_step",
+    "AffineStep",
     "flat_common",
 ]
 
@@ -837,3 +839,77 @@ def roi_observed(confidence, roi) -> float:
             raise ValueError(f"ROI {(r0, r1, c0, c1)} lies outside the {c.shape} confidence map")
         sel = c[r0:r1, c0:c1]
     return float(np.mean(sel >= 0.5)) if sel.size else 0.0
+
+
+def _poly_basis(u, v, degree) -> np.ndarray:
+    """(n_terms, n) float64: the monomials of ``(u, v)`` up to ``degree`` (none for -1)."""
+    terms = [u**i * v ** (d - i) for d in range(degree + 1) for i in range(d + 1)]
+    return np.stack(terms) if terms else np.zeros((0, u.size))
+
+
+@dataclass
+class AffineStep:
+    """:func:`affine_step`'s result (px of the images given): ``largest`` and ``median`` of the
+    step's displacement over the object; ``bound`` the Cramer-Rao bound of the worst-determined
+    affine mode with the intensity modes eliminated (``affine_bound``'s, less what they take);
+    ``score`` the step in its own scatter, ``sqrt(delta^T F delta)`` (``F`` those modes'
+    information): about ``sqrt(6)`` for noise alone."""
+
+    largest: float
+    median: float
+    bound: float
+    score: float
+
+
+def affine_step(f, w, obj, sigma, smooth=2.0, gain_degree=1, offset_degree=1) -> AffineStep:
+    """One Gauss-Newton step of the residual ``w - f`` (``w`` the warped moving image) for the six
+    affine modes of the object ``obj`` (bool; :func:`affine_basis`), pooled over all of it: the
+    affine motion left between the images, however little of it each window shows (a turn that
+    slides along a dome's rim is seen across the rim only, window by window). Both images smoothed
+    by ``smooth`` px (``affine_bound``'s gradients, the noise's share of their squares taken out
+    alike); the residual fitted as ``delta . grad f + a(x) f + c(x)``, the gain ``a`` and the
+    offset ``c`` polynomials in space of ``gain_degree`` and ``offset_degree`` (-1: none), and
+    no high-pass: a body's own slope is what shows a textureless dome's turn, and a high-passed
+    gain field reads as motion (benchmarks/README.md, "A slow multiplicative field read as
+    misalignment"). ``sigma``: the noise (the information charged as ``affine_bound``'s).
+
+    A measurement, not one of the checks: on the TRAINING benches a good result's step read up to
+    17 px (the family's gain and thinning fields, which no low-order gain models, look like affine
+    motion of a smooth body) while no failed result the checks trusted read over 1 px
+    (benchmarks/README.md, "A pooled affine step (session 50, s50aff)"). All-NaN for an object
+    of under 100 pixels or a flat image."""
+    f = np.asarray(f, np.float32)
+    obj = np.asarray(obj, bool)
+    nan = AffineStep(*(float("nan"),) * 4)
+    total = float(np.hypot(sigma, model_floor(f)))
+    yy, xx = np.nonzero(obj)
+    if yy.size < 100 or not total > 0:
+        return nan
+    fs, ws = ((_gauss(a, smooth) if smooth > 0 else a) for a in (f, np.asarray(w, np.float32)))
+    gy, gx = (a[obj].astype(np.float64) for a in np.gradient(fs))
+    basis = affine_basis(yy, xx)
+    u, v = basis[1], basis[2]
+    fo = fs[obj].astype(np.float64)
+    a = np.concatenate(
+        [basis * gy, basis * gx, _poly_basis(u, v, gain_degree) * fo, _poly_basis(u, v, offset_degree)]
+    ).T
+    ata, atr = a.T @ a, a.T @ (ws - fs)[obj].astype(np.float64)
+    floor = _deriv_noise_var(smooth) * sigma**2
+    for i in range(2):
+        ata[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] -= floor * (basis @ basis.T)
+    scale = np.sqrt(np.maximum(np.diag(ata), 1e-30))  # columns of very different sizes
+    try:
+        inv = np.linalg.inv(ata / np.outer(scale, scale)) / np.outer(scale, scale)
+    except np.linalg.LinAlgError:
+        return nan
+    delta = (inv @ atr)[:6]
+    d = np.hypot(delta[:3] @ basis, delta[3:] @ basis)
+    # the affine modes' information with the intensity modes eliminated (a Schur complement)
+    info = np.linalg.inv(inv[:6, :6]) / (2 * total**2)
+    weakest = float(np.linalg.eigvalsh(0.5 * (info + info.T))[0])
+    return AffineStep(
+        largest=float(d.max()),
+        median=float(np.median(d)),
+        bound=float(1 / np.sqrt(weakest)) if weakest > 0 else float("inf"),
+        score=float(np.sqrt(max(float(delta @ info @ delta), 0.0))),
+    )
