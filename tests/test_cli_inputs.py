@@ -8,11 +8,12 @@ from datetime import UTC, datetime
 
 import h5py
 import numpy as np
+import pytest
 import tifffile
 from conftest import one_line_error, run_cli
 
 from radiokit.calibrate import Calibration
-from radiokit.io import ExperimentWriter, ImageKey
+from radiokit.io import ExperimentWriter, ImageKey, read
 
 ROWS, COLS = 48, 64
 
@@ -143,6 +144,32 @@ def test_an_hdf5_stack_stored_frames_last_is_refused_in_one_line_and_read_as_sto
     res = run_cli("register", path, path, "--dataset", "scan/frames", "-o", tmp_path / "f.h5")
     one_line_error(res, "stack.h5", "scan/frames", "--narrow-frames")
     assert not (tmp_path / "f.h5").exists()
+
+
+def test_an_experiment_file_of_narrow_frames_is_read_as_written(tmp_path):
+    """s50rv1: an experiment file (ExperimentWriter, frame by frame: (n, rows, cols) by
+    construction) of 70 frames of 200 x 8 pixels (a narrow strip of a panel) was refused as a
+    frames-last stack by info, correct and process, and ``process`` has no --narrow-frames
+    (``correct exp.h5 --narrow-frames`` was refused too: the calibration from its darks and flats
+    read it without the flag). On main it read with the warning; it reads so again."""
+    rng = np.random.default_rng(7)
+    path = tmp_path / "strip.h5"
+    with ExperimentWriter(path, shape=(200, 8)) as w:
+        for i in range(70):
+            key = ImageKey.DARK if i < 5 else ImageKey.FLAT if i < 15 else ImageKey.PROJECTION
+            level = {ImageKey.DARK: 100, ImageKey.FLAT: 3000, ImageKey.PROJECTION: 1500}[key]
+            w.append(rng.normal(level, 10, (200, 8)).round().astype(np.uint16), image_key=key)
+    res = run_cli("info", "--json", path)
+    assert res.returncode == 0, res.stderr
+    assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (70, [200, 8])
+    with pytest.warns(UserWarning, match="reads as 70 frames of 200x8"):  # the warning stays (run_cli mutes it)
+        assert read(path).data.shape == (70, 200, 8)
+    res = run_cli("correct", path, "-o", tmp_path / "t.h5", "--domain", "linear", "-q")
+    assert res.returncode == 0, res.stderr
+    corrected = read(tmp_path / "t.h5").data
+    assert corrected.shape == (55, 200, 8)
+    # (1500 - 100) / (3000 - 100): the projections' transmission, within their noise
+    assert abs(float(np.median(corrected)) - 1400 / 2900) < 0.01
 
 
 # ------------------------------------------------------------------------------------------------

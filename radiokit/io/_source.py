@@ -315,10 +315,13 @@ class FrameSource:
         5) dataset was 512 frames of 512 x 5, strips of every image, which every command then
         worked on with only a warning; an HDF5 dataset's shape is the writer's own statement, and
         the user names it (``narrow_frames=True`` reads it as stored). A TIFF's pages are its
-        frames as written, and it keeps the warning."""
+        frames as written, and it keeps the warning; so does an experiment file, its frames
+        appended one (rows, cols) frame at a time (:class:`ExperimentWriter`, NXtomo's (n, rows,
+        cols)): refused, a strip of a panel packed into one could not be processed at all
+        (``process`` has no --narrow-frames, nor ``correct exp.h5``'s own calibration; s50rv1)."""
         if not _frames_last(self.n, self.frame_shape):
             return
-        if self.format == "tiff":
+        if self.format == "tiff" or self.meta.get("format") == "experiment":
             _warn_frames_last(self.path, self.n, self.frame_shape)
             return
         rows, cols = self.frame_shape
