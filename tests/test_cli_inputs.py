@@ -259,9 +259,38 @@ def test_an_8_bit_copy_of_a_16_bit_image_is_flagged_with_the_reason(tmp_path):
     res = run_cli("register", "i16.tif", "i8.tif", "-o", "f.h5", "-q", cwd=tmp_path)
     assert res.returncode == 1, (res.stdout, res.stderr)
     assert "max |d| 0.00 px" in res.stdout  # the field found no motion, as there is none
-    assert "the images are uint16 and uint8: their values are not of one scale" in res.stdout, res.stdout
+    assert "the images are uint16 and uint8: their values are not of one scale (an 8-bit copy of a 16-bit image?)" in (
+        res.stdout
+    ), res.stdout
     res = run_cli("register", "i16.tif", "i8x257.tif", "-o", "g.h5", "-q", cwd=tmp_path)
     assert res.returncode == 0 and "not of one scale" not in res.stdout, (res.stdout, res.stderr)
+
+
+def test_the_two_scales_hint_says_only_what_the_values_show(tmp_path):
+    """s50rv1: the hint fired on the types alone. Two unrelated images (flagged, rightly), both
+    of 8-bit values, one stored uint8 and one widened to uint16 (ImageJ's "16-bit" keeps the
+    values), were said "not of one scale": false, and it pointed away from the real cause. It
+    fires where the wider image holds values the narrower type cannot (a 16-bit image's against
+    its 8-bit copy), and names the widths the pair has: a 32-bit copy of a 16-bit image is no
+    "8-bit copy of a 16-bit image"."""
+    from scipy import ndimage
+
+    def smooth(seed):
+        im = ndimage.gaussian_filter(np.random.default_rng(seed).normal(0, 1, (160, 160)), 3)
+        return (im - im.min()) / (im.max() - im.min())
+
+    a, b = smooth(1), smooth(2)
+    tifffile.imwrite(tmp_path / "a8.tif", np.round(a * 250).astype(np.uint8))
+    tifffile.imwrite(tmp_path / "b8in16.tif", np.round(b * 250).astype(np.uint16))  # 8-bit values, widened
+    tifffile.imwrite(tmp_path / "a16.tif", np.round(1000 + a * 50000).astype(np.uint16))
+    tifffile.imwrite(tmp_path / "a32.tif", np.round(1000 + a * 50000).astype(np.uint32) * 65537)
+    res = run_cli("register", "a8.tif", "b8in16.tif", "-o", "f.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 1, (res.stdout, res.stderr)  # flagged: they are different images
+    assert "not of one scale" not in res.stdout, res.stdout
+    res = run_cli("register", "a16.tif", "a32.tif", "-o", "g.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "the images are uint16 and uint32: their values are not of one scale" in res.stdout, res.stdout
+    assert "a 16-bit copy of a 32-bit image?" in res.stdout and "8-bit" not in res.stdout, res.stdout
 
 
 def test_two_datasets_of_one_file_are_two_inputs(tmp_path):
