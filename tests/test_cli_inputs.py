@@ -106,6 +106,7 @@ def test_a_calibration_made_before_inputs_were_recorded_still_reads_and_says_so(
     never a traceback."""
     darks, flats = _darks_flats()
     cal = Calibration.from_frames(darks, flats)
+    del cal.provenance["inputs"]  # as radiokit wrote them before s50
     cal.provenance["dark_files"], cal.provenance["flat_files"] = ["d.tif"], ["f.tif"]
     cal.save(tmp_path / "old.h5")
     assert "inputs" not in Calibration.load(tmp_path / "old.h5").provenance
@@ -116,6 +117,34 @@ def test_a_calibration_made_before_inputs_were_recorded_still_reads_and_says_so(
     cal.save(tmp_path / "odd.h5")
     res = run_cli("info", tmp_path / "odd.h5")
     assert res.returncode == 0 and "made from  unreadable" in res.stdout, (res.stdout, res.stderr)
+
+
+def test_a_calibration_made_in_python_records_the_files_read_and_says_when_there_were_none(tmp_path):
+    """s50rv1: ``Calibration.from_frames(read("darks.tif"), read("flats.h5", dataset=...))``, the
+    README's Python way, recorded no inputs though the Frames name their files, and ``info`` of it
+    said "made before radiokit recorded its datasets" of a calibration made that minute. The
+    Frames' files are recorded as the command's are; made of plain arrays, ``info`` says so."""
+    from radiokit.io import read
+
+    darks, flats = _darks_flats()
+    tifffile.imwrite(tmp_path / "darks.tif", darks, photometric="minisblack")
+    _write_h5(tmp_path / "flats.h5", "scan/flat", flats[:3])
+    cal = Calibration.from_frames(read(tmp_path / "darks.tif"), read(tmp_path / "flats.h5", dataset="scan/flat"))
+    cal.save(tmp_path / "cal.h5")
+    got = [
+        (i["path"], i["format"], i["dataset"], i["darks"], i["flats"], i["size_bytes"])
+        for i in Calibration.load(tmp_path / "cal.h5").provenance["inputs"]
+    ]
+    assert got == [
+        (str(tmp_path / "darks.tif"), "tiff", None, 5, 0, os.path.getsize(tmp_path / "darks.tif")),
+        (str(tmp_path / "flats.h5"), "hdf5", "scan/flat", 0, 3, os.path.getsize(tmp_path / "flats.h5")),
+    ]
+    res = run_cli("info", tmp_path / "cal.h5")
+    assert res.returncode == 0 and "darks.tif: tiff, 5 darks" in res.stdout, (res.stdout, res.stderr)
+    Calibration.from_frames(darks, flats).save(tmp_path / "arrays.h5")
+    res = run_cli("info", tmp_path / "arrays.h5")
+    assert res.returncode == 0, res.stderr
+    assert "made before" not in res.stdout and "made from  arrays, no files" in res.stdout, res.stdout
 
 
 # ------------------------------------------------------------------------------------------------
