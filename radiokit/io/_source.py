@@ -321,6 +321,11 @@ class FrameSource:
         (``process`` has no --narrow-frames, nor ``correct exp.h5``'s own calibration; s50rv1)."""
         if not _frames_last(self.n, self.frame_shape):
             return
+        if self.format == "hdf5" and _attr_text(getattr(self._ds, "attrs", {}).get("interpretation")) == "image":
+            # NeXus: its last two axes are one image, as its writer declared (every radiokit
+            # writer's; a tifffile description's axes alike): radiokit's own corrected strip was
+            # refused, with advice (moveaxis) that would have scrambled it (s50rv1)
+            return
         if self.format == "tiff" or self.meta.get("format") == "experiment":
             _warn_frames_last(self.path, self.n, self.frame_shape)
             return
