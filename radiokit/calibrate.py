@@ -822,13 +822,17 @@ class Calibration:
         )
 
     @classmethod
-    def from_experiment(cls, path, *, allow_external=False, progress=False, **thresholds) -> Calibration:
+    def from_experiment(
+        cls, path, *, allow_external=False, progress=False, narrow_frames=False, **thresholds
+    ) -> Calibration:
         """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file
         (``allow_external``: its frames may lie in other files, see :func:`radiokit.io.read`;
-        ``progress``: bars on stderr over the frames read and the rows averaged)."""
+        ``progress``: bars on stderr over the frames read and the rows averaged;
+        ``narrow_frames``: a stack of frames far narrower than they are many read as stored, see
+        :func:`radiokit.io.read`)."""
         from radiokit.io import ImageKey, open_frames
 
-        with open_frames(path, allow_external=allow_external) as src:
+        with open_frames(path, allow_external=allow_external, narrow_frames=narrow_frames) as src:
             if src.meta.get("format") == "calibration":  # its averages read as one dark and one flat
                 raise FormatError(
                     path, "is a radiokit calibration, not an experiment file: use it as it is (radiokit correct --cal)"

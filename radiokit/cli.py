@@ -600,7 +600,11 @@ def cmd_calibrate(args) -> int:
         )
     if args.experiment:
         cal = Calibration.from_experiment(
-            args.experiment, allow_external=args.allow_external, progress=_progress(args), **th
+            args.experiment,
+            allow_external=args.allow_external,
+            progress=_progress(args),
+            narrow_frames=args.narrow_frames,
+            **th,
         )
     else:
         if not (args.dark and args.flat):
@@ -748,7 +752,9 @@ def cmd_correct(args) -> int:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
         _an_experiment(args.frames[0], _raw_hints(args))
-        cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
+        cal = Calibration.from_experiment(
+            args.frames[0], allow_external=args.allow_external, narrow_frames=args.narrow_frames
+        )
         print(f"calibrated from the darks and flats of {shown(args.frames[0])}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")

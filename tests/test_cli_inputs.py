@@ -225,6 +225,30 @@ def test_a_stack_its_writer_declared_frames_first_is_read_so(tmp_path):
     one_line_error(run_cli("info", tmp_path / "declared.h5", "--dataset", "unsaid"), "unsaid", "--narrow-frames")
 
 
+def test_narrow_frames_reaches_the_calibration_of_one_data_exchange_file(tmp_path):
+    """s50rv1: a Data Exchange file of 80 projections of 200 x 8 (its darks and flats beside) was
+    refused by ``correct dx.h5`` naming "dataset its frames", and ``--narrow-frames``, the way out
+    the message gave, was refused the same: the calibration from the file's own darks and flats
+    read it without the flag. The line names its datasets; the flag reaches that calibration
+    (and ``calibrate --experiment``'s)."""
+    rng = np.random.default_rng(9)
+    path = tmp_path / "dx.h5"
+    with h5py.File(path, "w") as f:
+        f["exchange/data"] = rng.normal(1500, 10, (80, 200, 8)).round().astype(np.uint16)
+        f["exchange/data_dark"] = rng.normal(100, 10, (5, 200, 8)).round().astype(np.uint16)
+        f["exchange/data_white"] = rng.normal(3000, 10, (10, 200, 8)).round().astype(np.uint16)
+    res = run_cli("correct", path, "-o", tmp_path / "t.h5", "--domain", "linear", "-q")
+    one_line_error(res, "dx.h5", "/exchange/data", "95x200x8", "--narrow-frames")
+    assert "dataset its frames" not in res.stderr
+    res = run_cli("correct", path, "-o", tmp_path / "t.h5", "--domain", "linear", "-q", "--narrow-frames")
+    assert res.returncode == 0, res.stderr
+    corrected = read(tmp_path / "t.h5").data
+    assert corrected.shape == (80, 200, 8)
+    assert abs(float(np.median(corrected)) - 1400 / 2900) < 0.01  # (1500 - 100) / (3000 - 100)
+    res = run_cli("calibrate", "--experiment", path, "-o", tmp_path / "cal.h5", "-q", "--narrow-frames")
+    assert res.returncode == 0, res.stderr
+
+
 # ------------------------------------------------------------------------------------------------
 # 3. --dataset over TIFF and HDF5 files given together
 # ------------------------------------------------------------------------------------------------

@@ -330,13 +330,15 @@ class FrameSource:
             _warn_frames_last(self.path, self.n, self.frame_shape)
             return
         rows, cols = self.frame_shape
-        name = self.meta.get("dataset") or getattr(self._ds, "name", None) or "its frames"
+        # a Data Exchange file's stack: its datasets, by name ("dataset its frames" named none)
+        parts = [getattr(d, "name", None) for d in getattr(self._ds, "datasets", [])]
+        name = self.meta.get("dataset") or getattr(self._ds, "name", None) or " + ".join(filter(None, parts))
         said = (
             f"or, if they are {self.n} frames of {rows}x{cols}, read them so with narrow_frames=True (--narrow-frames)"
         )
         raise FormatError(
             self.path,
-            f"dataset {name} has shape {self.n}x{rows}x{cols}, read as (n, rows, cols) {self.n} frames of {rows}x{cols}; "
+            f"{f'dataset {name}' if name else 'its stack'} has shape {self.n}x{rows}x{cols}, read as (n, rows, cols) {self.n} frames of {rows}x{cols}; "
             f"its last axis far the shortest, it looks like {cols} frames of {self.n}x{rows} stored rows x cols x n (numpy's dstack, IDL, "
             f"Fortran): not read; write it as (n, rows, cols) (numpy.moveaxis(stack, -1, 0)), {said}",
             advice={"narrow_frames": said},
