@@ -729,6 +729,7 @@ class Calibration:
         if scaling is None:
             scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
+        given_frames = {"darks": darks, "flats": flats}  # the Frames' files, recorded below
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
@@ -760,6 +761,7 @@ class Calibration:
         # is a wrong bit or byte order or another panel
         if bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1:
             cal.provenance["bit_depth"] = int(bit_depth)
+        cal.provenance["inputs"] = _frames_inputs(given_frames, {"darks": darks.shape[0], "flats": flats.shape[0]})
         return cal
 
     @classmethod
@@ -820,13 +822,17 @@ class Calibration:
         )
 
     @classmethod
-    def from_experiment(cls, path, *, allow_external=False, progress=False, **thresholds) -> Calibration:
+    def from_experiment(
+        cls, path, *, allow_external=False, progress=False, narrow_frames=False, **thresholds
+    ) -> Calibration:
         """Calibrate from the darks (image_key 2) and flats (image_key 1) of an experiment file
         (``allow_external``: its frames may lie in other files, see :func:`radiokit.io.read`;
-        ``progress``: bars on stderr over the frames read and the rows averaged)."""
+        ``progress``: bars on stderr over the frames read and the rows averaged;
+        ``narrow_frames``: a stack of frames far narrower than they are many read as stored, see
+        :func:`radiokit.io.read`)."""
         from radiokit.io import ImageKey, open_frames
 
-        with open_frames(path, allow_external=allow_external) as src:
+        with open_frames(path, allow_external=allow_external, narrow_frames=narrow_frames) as src:
             if src.meta.get("format") == "calibration":  # its averages read as one dark and one flat
                 raise FormatError(
                     path, "is a radiokit calibration, not an experiment file: use it as it is (radiokit correct --cal)"
@@ -1921,6 +1927,24 @@ class CalibrationInput:
         return asdict(self)
 
 
+def _frames_inputs(given: dict, counts: dict) -> list[dict]:
+    """The files :meth:`Calibration.from_frames`' darks and flats (``given``, by kind) were read
+    from, where they are :class:`radiokit.io.Frames` naming one (``meta["path"]``), as
+    ``provenance["inputs"]``; one entry per file and dataset, its frames of each kind
+    (``counts``). Plain arrays name none: ``[]``. Why: the README's Python way,
+    ``from_frames(read(...), read(...))``, recorded nothing, and ``info`` said of a calibration
+    made that minute that it was made before radiokit recorded its inputs (s50rv1). The commands
+    record their own (each file of a kind read into one stack)."""
+    inputs: dict = {}
+    for kind, frames in given.items():
+        meta = getattr(frames, "meta", None)
+        if not isinstance(meta, dict) or not meta.get("path"):
+            continue
+        one = inputs.setdefault((meta["path"], meta.get("dataset")), CalibrationInput.of(meta["path"], meta))
+        setattr(one, kind, getattr(one, kind) + int(counts[kind]))
+    return [one.record() for one in inputs.values()]
+
+
 def input_lines(provenance: dict) -> list[str]:
     """What a calibration was read from, one line per file, for ``radiokit info``: its
     ``provenance["inputs"]`` (:class:`CalibrationInput`), or, for a calibration made before they
@@ -1940,6 +1964,8 @@ def input_lines(provenance: dict) -> list[str]:
         return [f"{said}made before radiokit recorded its datasets, sizes and times)"]
     if not isinstance(inputs, list) or not all(isinstance(i, dict) for i in inputs):
         return ["unreadable: provenance inputs is not a list of objects"]
+    if not inputs:  # Calibration.from_frames of plain arrays
+        return ["arrays, no files (Calibration.from_frames of frames in memory)"]
     lines = []
     for i in inputs:
         counts = " and ".join(

@@ -600,7 +600,11 @@ def cmd_calibrate(args) -> int:
         )
     if args.experiment:
         cal = Calibration.from_experiment(
-            args.experiment, allow_external=args.allow_external, progress=_progress(args), **th
+            args.experiment,
+            allow_external=args.allow_external,
+            progress=_progress(args),
+            narrow_frames=args.narrow_frames,
+            **th,
         )
     else:
         if not (args.dark and args.flat):
@@ -748,7 +752,9 @@ def cmd_correct(args) -> int:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
         _an_experiment(args.frames[0], _raw_hints(args))
-        cal = Calibration.from_experiment(args.frames[0], allow_external=args.allow_external)
+        cal = Calibration.from_experiment(
+            args.frames[0], allow_external=args.allow_external, narrow_frames=args.narrow_frames
+        )
         print(f"calibrated from the darks and flats of {shown(args.frames[0])}")
     else:
         raise ValueError("--cal CAL.h5 is required unless a single experiment file is given")
@@ -959,8 +965,8 @@ def _register_inputs(args):
         if args.png.suffix.lower().lstrip(".") not in kinds:
             raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
     _check_register_memory(args, fixed)
-    types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored (_types_hint)
-    return fixed, moving, mask, types
+    types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored
+    return fixed, moving, mask, _types_hint(types, (fixed, moving))
 
 
 #: register's peak memory per pixel of one image, beyond the interpreter's 250 MB, measured with
@@ -997,7 +1003,7 @@ def cmd_register(args) -> int:
     from radiokit.io import RegistrationRecord
     from radiokit.register import register, with_default_preset
 
-    fixed, moving, mask, types = _register_inputs(args)
+    fixed, moving, mask, types_hint = _register_inputs(args)
     _check_preset(args)
     options = {"preset": args.preset} if args.preset else {}
     # the B-spline methods run auto unless told (as radiokit process does): default, retried when flagged
@@ -1050,7 +1056,7 @@ def cmd_register(args) -> int:
         )
     print(
         f"wrote {shown(args.output)}"
-        + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{_types_hint(*types)}")
+        + ("" if q.ok else f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{types_hint}")
     )
     if args.png:
         print(f"figure {shown(args.png)}")
@@ -1126,20 +1132,31 @@ def _negative_hint(q) -> str:
     )
 
 
-def _types_hint(fixed_type: str, moving_type: str) -> str:
+def _types_hint(types: tuple[str, str], images: tuple) -> str:
     """Why a flagged pair of integer images of two sizes (uint8 against uint16) may be judged
     unregistrable as given: an 8-bit copy of a 16-bit image (a viewer's export) holds its values
     about 257 times smaller, and the checks, which compare the registered pair's intensities with
     the noise, read that difference as structure left misaligned ("did not find the motion")
     whatever the field. s50: such a copy of one image, no motion, was registered by rc with a zero
     field (max |d| 0.00 px) and flagged; its 16-bit copy (x 257, quantised alike) was not. The
-    flag stays: no check can judge intensities of two scales."""
-    kinds = [np.dtype(t) if t else None for t in (fixed_type, moving_type)]
+    flag stays: no check can judge intensities of two scales.
+
+    Said only where the values show it: the wider image's (its 99.9th percentile, past a few hot
+    pixels) lie beyond what the narrower type holds. The types alone said it of an 8-bit image
+    against another widened to uint16 (ImageJ's "16-bit" keeps the values), one scale (s50rv1).
+    ``types`` as stored, ``images`` (fixed, moving) as read."""
+    kinds = [np.dtype(t) if t else None for t in types]
     if None in kinds or any(k.kind not in "ui" for k in kinds) or kinds[0].itemsize == kinds[1].itemsize:
         return ""
+    narrow, wide = (0, 1) if kinds[0].itemsize < kinds[1].itemsize else (1, 0)
+    values = np.asarray(images[wide], np.float64)
+    values = values[np.isfinite(values)]
+    if not values.size or np.percentile(values, 99.9) <= np.iinfo(kinds[narrow]).max:
+        return ""
+    bits = [8 * kinds[i].itemsize for i in (narrow, wide)]
     return (
-        f"; the images are {kinds[0]} and {kinds[1]}: their values are not of one scale (an 8-bit copy of a "
-        "16-bit image?), which the checks compare; register two images of one type"
+        f"; the images are {kinds[0]} and {kinds[1]}: their values are not of one scale ({'an' if bits[0] == 8 else 'a'} {bits[0]}-bit copy of a "
+        f"{bits[1]}-bit image?), which the checks compare; register two images of one type"
     )
 
 

@@ -315,20 +315,30 @@ class FrameSource:
         5) dataset was 512 frames of 512 x 5, strips of every image, which every command then
         worked on with only a warning; an HDF5 dataset's shape is the writer's own statement, and
         the user names it (``narrow_frames=True`` reads it as stored). A TIFF's pages are its
-        frames as written, and it keeps the warning."""
+        frames as written, and it keeps the warning; so does an experiment file, its frames
+        appended one (rows, cols) frame at a time (:class:`ExperimentWriter`, NXtomo's (n, rows,
+        cols)): refused, a strip of a panel packed into one could not be processed at all
+        (``process`` has no --narrow-frames, nor ``correct exp.h5``'s own calibration; s50rv1)."""
         if not _frames_last(self.n, self.frame_shape):
             return
-        if self.format == "tiff":
+        if self.format == "hdf5" and _attr_text(getattr(self._ds, "attrs", {}).get("interpretation")) == "image":
+            # NeXus: its last two axes are one image, as its writer declared (every radiokit
+            # writer's; a tifffile description's axes alike): radiokit's own corrected strip was
+            # refused, with advice (moveaxis) that would have scrambled it (s50rv1)
+            return
+        if self.format == "tiff" or self.meta.get("format") == "experiment":
             _warn_frames_last(self.path, self.n, self.frame_shape)
             return
         rows, cols = self.frame_shape
-        name = self.meta.get("dataset") or getattr(self._ds, "name", None) or "its frames"
+        # a Data Exchange file's stack: its datasets, by name ("dataset its frames" named none)
+        parts = [getattr(d, "name", None) for d in getattr(self._ds, "datasets", [])]
+        name = self.meta.get("dataset") or getattr(self._ds, "name", None) or " + ".join(filter(None, parts))
         said = (
             f"or, if they are {self.n} frames of {rows}x{cols}, read them so with narrow_frames=True (--narrow-frames)"
         )
         raise FormatError(
             self.path,
-            f"dataset {name} has shape {self.n}x{rows}x{cols}, read as (n, rows, cols) {self.n} frames of {rows}x{cols}; "
+            f"{f'dataset {name}' if name else 'its stack'} has shape {self.n}x{rows}x{cols}, read as (n, rows, cols) {self.n} frames of {rows}x{cols}; "
             f"its last axis far the shortest, it looks like {cols} frames of {self.n}x{rows} stored rows x cols x n (numpy's dstack, IDL, "
             f"Fortran): not read; write it as (n, rows, cols) (numpy.moveaxis(stack, -1, 0)), {said}",
             advice={"narrow_frames": said},
