@@ -4,6 +4,8 @@ characters. Real files (tifffile, h5py) written to ``tmp_path``, run through ``m
 
 import json
 import os
+import subprocess
+import sys
 from datetime import UTC, datetime
 
 import h5py
@@ -381,3 +383,18 @@ def test_two_datasets_of_one_file_are_two_inputs(tmp_path):
     assert run_cli("calibrate", *args, "-o", out, "-q", cwd=tmp_path).returncode == 0
     got = [(i["dataset"], i["option"], i["darks"], i["flats"]) for i in Calibration.load(out).provenance["inputs"]]
     assert got == [("d", "--dark-dataset", 4, 0), ("f", "--flat-dataset", 0, 3)]
+
+
+def test_dataset_beside_a_fifo_is_refused_not_waited_on(tmp_path):
+    """Review s50rv1: ``info p.tif x.h5 --dataset d`` with ``p.tif`` a FIFO hung in the look for
+    HDF5 files among the inputs (its open() waits for a writer that never comes), where without
+    ``--dataset`` the reader refuses it as not a regular file. Run as a process: a hang must fail
+    the test, not the suite."""
+    fifo = tmp_path / "p.tif"
+    os.mkfifo(fifo)
+    _write_h5(tmp_path / "x.h5", "d", _darks_flats()[0])
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(fifo), str(tmp_path / "x.h5"), "--dataset", "d"],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    one_line_error(res, "p.tif", "not a regular file")

@@ -161,6 +161,14 @@ def sniff(path) -> str:
     """
     path = Path(path)
     try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = None  # named below by the open() that fails the same way
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        # a FIFO's open() waits for a writer: `info p.tif x.h5 --dataset d` hung looking for the
+        # HDF5 files among its inputs (review s50rv1), where the reader refuses it
+        raise FormatError(path, "is not a regular file (a FIFO, socket or device), not a frame file")
+    try:
         with open(path, "rb") as fh:
             start = fh.read(132)  # DICOM's signature is at byte 128
     except IsADirectoryError:
