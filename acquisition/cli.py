@@ -335,6 +335,9 @@ def _guarded(command, *args) -> int:
     try:
         with SignalGuard() as guard:
             code = command(guard, *args)
+            # decided and said: a stop from now until the process exits changes nothing (the
+            # series' own command has ignored them since its outcome: _series)
+            guard.finish()
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
@@ -357,7 +360,6 @@ def _run_series(args, p) -> int:
 
 def _series(guard, args, p) -> int:
     from acquisition.errors import DeviceError
-    from acquisition.guardian import StopSignal
     from acquisition.protocols.compression_series import run
 
     again = f"`{resume_command(args)}`"
@@ -371,23 +373,14 @@ def _series(guard, args, p) -> int:
             guard=guard,
         )
     except KeyboardInterrupt as exc:
+        # the outcome is decided (stopped; the tube dealt with): a further Ctrl-C must neither cut
+        # the lines below short nor end the process by SIGINT after them (SignalGuard.finish)
+        guard.finish()
         r = getattr(exc, "result", None)
-        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
-        saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-        if r is not None and getattr(r, "previous_aside", None) is not None:
-            _say(f"\nstopped by {name} in phase {r.phase}; {_aside(r, args)}")
-        elif r is not None and r.previous_kept:
-            _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
-        elif r is not None and getattr(r, "file_removed", False):
-            _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
-        elif r is not None and getattr(r, "file_lost", False):
-            _say(f"\nstopped by {name} in phase {r.phase}; {_lost(r)}")
-        elif r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
-            _say(f"\nstopped by {name} in phase {r.phase}; no file was made; the same command starts the series")
-        else:
-            _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
+        _say(_stopped_line(exc, r, args, p))
         return _finish(r, 128 + getattr(exc, "signum", 2))
     except Exception as exc:
+        guard.finish()
         r = getattr(exc, "result", None)
         known = isinstance(exc, (DeviceError, OSError, ValueError))
         _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
@@ -404,6 +397,9 @@ def _series(guard, args, p) -> int:
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
             )
         return _finish(r, 1)
+    # complete, the tube confirmed off or the warning due: a Ctrl-C from here on (up to 100 ms
+    # after the last line, as the interpreter finishes) changes nothing and says nothing
+    guard.finish()
     if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
         _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
         return 0
@@ -415,6 +411,44 @@ def _series(guard, args, p) -> int:
         err=False,
     )
     return _finish(res, 0, err=False)
+
+
+def _stopped_line(exc, r, args, p) -> str:
+    """The line of a series a signal stopped (``exc``; ``r``: its result, if it has one): what
+    the file holds, and how it is completed."""
+    from acquisition.guardian import StopSignal
+
+    name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+    saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+    where = f"\nstopped by {name}{' in phase ' + r.phase if r else ''}"
+    if r is not None and getattr(r, "previous_aside", None) is not None:
+        return f"{where}; {_aside(r, args)}"
+    if r is not None and r.previous_kept:
+        return f"{where}; {_KEPT.format(out=r.output)}"
+    if r is not None and getattr(r, "file_removed", False):
+        return f"{where}; {_REMOVED.format(out=r.output)}"
+    if r is not None and getattr(r, "file_lost", False):
+        return f"{where}; {_lost(r)}"
+    if r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
+        return f"{where}; no file was made; the same command starts the series"
+    if r is not None and _holds_the_whole_series(r, p, args):
+        # stopped after its last frame (before the close): "--resume completes it" offered a
+        # resume that finds nothing to take
+        return f"{where}; all {saved}: the series is complete"
+    return f"{where}; {saved}; `{resume_command(args)}` completes it"
+
+
+def _holds_the_whole_series(r, p, args) -> bool:
+    """Whether the experiment file of a stopped run holds every frame of the series (what a
+    ``--resume`` would find: nothing to take). False when it cannot be read."""
+    if not r.frames_total:
+        return False
+    from acquisition.protocols.compression_series import _existing, plan
+
+    try:
+        return plan(p, _existing(Path(r.output), p, sim=args.sim), warm=True).n_frames == 0
+    except Exception:  # (the file unreadable now: the usual line, which offers --resume)
+        return False
 
 
 #: An --overwrite stopped before its first frame: the file it was to replace is there, as it was
