@@ -849,7 +849,7 @@ def _source_command(args, guard) -> int:
             guardian_gone(src, exc)  # then switched off after the error line (below)
             raise
         try:
-            code = _source_action(src, args)
+            code = _source_action(src, args, guard)
             guard.settle()  # a stop lost meanwhile switches off like any other
         except KeyboardInterrupt as exc:
             # XOF whatever this command had begun (always accepted): the line then states the tube.
@@ -1195,9 +1195,14 @@ def _source_status(src, args) -> int | None:
     return None
 
 
-def _source_action(src, args) -> int:
-    """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
+def _source_action(src, args, guard=None) -> int:
+    """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome.
+    Before the warm-up and the XON, a stop the guard raised that never reached the command (a
+    library's bare ``except:`` swallowed it inside an import) is raised again, as a series does
+    before each (:meth:`~acquisition.guardian.SignalGuard.raise_if_lost`)."""
     from acquisition.errors import DeviceError
+
+    lost = getattr(guard, "raise_if_lost", lambda: None)
 
     if args.action == "status":
         code = _source_status(src, args)
@@ -1206,6 +1211,7 @@ def _source_action(src, args) -> int:
     elif args.action == "warm-up":
         try:
             kv, ua = args.whole or (None, None)  # (checked and rounded before the port was opened)
+            lost()  # no warm-up (it emits) after a stop that never reached the command
             seconds = src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=kv, ua=ua)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
@@ -1219,6 +1225,7 @@ def _source_action(src, args) -> int:
             flush=True,
         )
         try:
+            lost()  # no XON after a stop that never reached the command
             r = src.on(*args.whole)  # (checked and rounded before the port was opened)
             _hold_beam(src, args, r)
         except DeviceError as exc:

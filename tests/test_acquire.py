@@ -1827,6 +1827,54 @@ def test_a_stop_swallowed_inside_an_import_stops_the_series_before_any_x_ray_com
     assert not {"XON", "WUP"} & {c.split()[0] for c in dev.emulator.commands}, dev.emulator.commands
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("action", ["on", "warm-up"])
+def test_a_stop_swallowed_inside_an_import_stops_source_on_and_warm_up_before_any_x_ray_command(
+    tmp_path, monkeypatch, dialect, action
+):
+    """The series' rule (the test above) for `source on` and `source warm-up`: a stop raised inside
+    an import past the wait's cap and swallowed there left the guard stopping, and the command went
+    on to send XON (WUP), every later Ctrl-C only saying "please wait". It is now raised again
+    before the X-ray command: nothing that emits is sent, the tube is confirmed off, exit 130. The
+    import, its bare except and the signal are real (the cap made short), the emulator is on a pty
+    made here; where the import happens is the test's (after the guardian starts, before the
+    connect: the command's own imports there are already loaded in this process)."""
+    import importlib
+
+    from conftest import run_cli
+
+    import radiokit.interrupts as interrupts
+    from acquisition import cli
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    name = f"swallowed_in_source_{action.replace('-', '_')}_{dialect}_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(SWALLOWED_PAST_THE_CAP)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.05)
+    behind = cli._behind_guardian
+
+    def behind_then_import(src):
+        guarded = behind(src)
+        importlib.import_module(name)
+        return guarded
+
+    monkeypatch.setattr(cli, "_behind_guardian", behind_then_import)
+    model = L8121Model(dialect=dialect, warmed_up=action == "on", warmup_s=0.5, ramp_s=0.05)
+    given = ["--kv", "60", "--ua", "250"] + (["--for", "0.5"] if action == "on" else [])
+    try:
+        with PtyServer(model) as server:
+            res = run_cli("acquire", "source", action, "--port", server.url, "--dialect", dialect, "-q", *given)
+        assert sys.modules[name].IMPORTED  # swallowed: the import ran to its end
+    finally:
+        sys.modules.pop(name, None)
+    sent = {c.split()[0] for c in model.commands}
+    assert not {"XON", "WUP"} & sent, model.commands
+    assert not model.xray_on and model.state != 1
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("stopped by SIGINT; tube off (confirmed by STS:"), res.stderr
+
+
 @pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])
 def test_ctrl_c_while_radiokit_starts_is_one_line_exit_130(tmp_path, module):
     """Ctrl-C in the first second of `radiokit acquire` -- radiokit.cli's own imports (numpy), or
