@@ -571,18 +571,17 @@ def test_a_controller_error_mid_step_stops_the_series_keeping_its_frames(tmp_pat
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
-def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(
-    tmp_path, scene_toml, bench, dialect, monkeypatch
-):
+def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path, scene_toml, bench, dialect):
     """SER is read at most every ERROR_POLL_S: a code that comes up after the last read of a beam
     period (here: no read during it at all) was vouched for by the period's end (its last poll
     skips SER within the interval, and after the series' last period nobody reads it again). The
     driver reads SER once the tube is off (XOF is not delayed by it): a code not allowed stops the
     series and labels the frames since the last good SER invalid (review s47rv4)."""
-    import acquisition.l8121 as l8121
+    from acquisition.l8121 import ERROR_POLL_MAX_S
 
-    monkeypatch.setattr(l8121, "ERROR_POLL_S", 1e6)  # no SER with the beam on: the gap, deterministic
     p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    # no SER with the beam on: the gap, deterministic (the series' beam periods last seconds)
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
     seen = {"frames": 0}

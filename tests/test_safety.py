@@ -1369,6 +1369,11 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     # the watchdog in every warm-up; and the driver rounds before XON, which is after the warm-up
     ({"limits": {"poll_s": 2.0}}, r"watchdog_s = 5\.0: expected at least 4 poll periods \(8 s\)"),
     ({"voltage_kv": 60.5, "current_ua": 165, "watts_max": 10}, r"61 kV x 165 µA = 10\.065 W exceeds watts_max = 10 W"),
+    # the controller error code's period with the beam on (was the constant ERROR_POLL_S)
+    ({"error_poll_s": 0}, r"error_poll_s = 0: expected a number of seconds above 0"),
+    ({"error_poll_s": float("nan")}, r"\[source\] error_poll_s = nan: expected a finite number"),
+    ({"error_poll_s": "1"}, r"\[source\] error_poll_s = '1': expected a number"),
+    ({"limits": {"error_poll_s": 600}}, r"error_poll_s = 600: at most 60 s"),
 ]
 
 
@@ -1403,6 +1408,19 @@ def test_refused_exposure_sends_nothing(tmp_path, scene_file, controller):
     record("voltage_kv = 900 (run)", model, acq, None, code)
     assert code == 2 and "voltage_kv = 900" in acq.last_line and "Traceback" not in acq.output
     assert model.commands == []
+
+
+@ONE_DIALECT
+def test_a_bad_error_poll_period_sends_nothing(tmp_path, scene_file, controller):
+    """``[source] error_poll_s`` (how often SER is read with the beam on) is a setting like the
+    others: a bad one is refused in one line naming the file and the key before any byte is sent."""
+    model, server = controller()
+    proto = write_protocol(tmp_path, scene_file, server, source={"error_poll_s": -1})
+    acq = Acquire(proto, "--sim", "-q")
+    code = acq.wait()
+    assert code == 2 and model.commands == [], acq.output
+    lines = [ln for ln in acq.lines if ln.strip()]
+    assert len(lines) == 1 and str(proto) in lines[0] and "error_poll_s" in lines[0], acq.output
 
 
 def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file, capsys):
