@@ -869,6 +869,9 @@ def _source_command(args, guard) -> int:
             guard.cleanup()  # from here a signal must not cut the switch-off short
             _close_after(src, exc)  # a failed command leaves the tube off, or close() raises that it may not be
             raise
+        # decided and said: a Ctrl-C as the link is let go (close()) ended `source on` on "stopped by
+        # SIGINT; WARNING: X-RAYS MAY STILL BE ON", the tube confirmed off the line before
+        guard.finish()
         src.close()
         return code
     except (DeviceError, ValueError) as exc:

@@ -946,6 +946,25 @@ def test_ctrl_c_at_the_series_end_says_what_was_written_and_exits_0_or_130(tmp_p
             assert "--resume` completes it" in acq.output and "complete" not in acq.last_line, acq.output
 
 
+def test_ctrl_c_after_source_on_has_switched_off_keeps_its_last_line(controller):
+    """`source on --for`'s storm (as the series' above) from its "over: tube off (confirmed)"
+    line: a Ctrl-C that landed as the command let the link go (close(), after that line) ended it
+    on "stopped by SIGINT; WARNING: X-RAYS MAY STILL BE ON", exit 130, with the tube confirmed off
+    a moment before (3 runs in 3, dialect A). The command's outcome is decided before the link is
+    let go: exit 0 (130 if the stop came before), the tube's confirmed line last, never the
+    warning, never death by the signal."""
+    model, server = controller()
+    port = ["--port", server.url, "--dialect", model.dialect]
+    acq = Acquire("source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.3", "-q")
+    sent = _ctrl_c_storm(acq, lambda: any(" s over: tube off" in ln for ln in acq.lines))
+    code = acq.wait()
+    record(f"source on: Ctrl-C every 2 ms from its last line ({sent} sent)", model, acq, None, code)
+    assert sent > 0 and code in (0, 130), f"exit {code}\n{acq.output}"
+    assert not model.xray_on and WARNING not in acq.output, acq.output
+    assert CONFIRMED.search(acq.last_line), acq.output
+    assert "Traceback" not in acq.output and "no partial output" not in acq.output, acq.output
+
+
 @ONE_DIALECT
 def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_path, scene_file, controller):
     """Found: Ctrl-Z (SIGTSTP to the job's process group) suspended the acquiring process -- its
