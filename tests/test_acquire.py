@@ -695,6 +695,33 @@ def _cli_stopped_when(capsys, notebook: Path, said: str, *args, poll_s=0.05, aft
     return code, capsys.readouterr().err
 
 
+def test_cli_a_stop_after_the_last_frame_says_the_series_is_complete(tmp_path, scene_toml, capsys, monkeypatch):
+    """A Ctrl-C after the series' last frame (its beam period over, every frame valid) but before
+    its close said "N frames saved in X; `... --resume` completes it", and that resume found
+    nothing to take. The line now says the file holds the whole series; exit 130 (it was
+    stopped). The signal is real, raised as the close phase begins (the point is the test's)."""
+    from acquisition.protocols import compression_series as cs
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    close = cs._phase_close
+
+    def stopped_first(r):
+        signal.raise_signal(signal.SIGINT)  # the guard's handler raises at the next bytecode
+        close(r)
+
+    assert cs._PHASES[-1] == ("close", close)
+    monkeypatch.setattr(cs, "_PHASES", (*cs._PHASES[:-1], ("close", stopped_first)))
+    assert _cli("acquire", str(path), "--sim", "-q") == 130
+    err = capsys.readouterr().err
+    total = DARKS + FLATS + len(STEPS)
+    assert f"stopped by SIGINT in phase close; all {total} frames saved in {p.output}: the series is complete" in err
+    assert "--resume" not in err and re.search(r"tube off \(confirmed by STS: \w+\)\n*$", err), err
+    assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0  # (what a resume finds: nothing to take)
+    assert f"already complete ({total} frames)" in capsys.readouterr().out
+
+
 def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, capsys):
     p = protocol(tmp_path, scene_toml, settle_s=60.0)
     path = tmp_path / "protocol.toml"
