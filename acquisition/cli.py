@@ -335,6 +335,9 @@ def _guarded(command, *args) -> int:
     try:
         with SignalGuard() as guard:
             code = command(guard, *args)
+            # decided and said: a stop from now until the process exits changes nothing (the
+            # series' own command has ignored them since its outcome: _series)
+            guard.finish()
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
@@ -357,7 +360,6 @@ def _run_series(args, p) -> int:
 
 def _series(guard, args, p) -> int:
     from acquisition.errors import DeviceError
-    from acquisition.guardian import StopSignal
     from acquisition.protocols.compression_series import run
 
     again = f"`{resume_command(args)}`"
@@ -371,23 +373,14 @@ def _series(guard, args, p) -> int:
             guard=guard,
         )
     except KeyboardInterrupt as exc:
+        # the outcome is decided (stopped; the tube dealt with): a further Ctrl-C must neither cut
+        # the lines below short nor end the process by SIGINT after them (SignalGuard.finish)
+        guard.finish()
         r = getattr(exc, "result", None)
-        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
-        saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
-        if r is not None and getattr(r, "previous_aside", None) is not None:
-            _say(f"\nstopped by {name} in phase {r.phase}; {_aside(r, args)}")
-        elif r is not None and r.previous_kept:
-            _say(f"\nstopped by {name} in phase {r.phase}; {_KEPT.format(out=r.output)}")
-        elif r is not None and getattr(r, "file_removed", False):
-            _say(f"\nstopped by {name} in phase {r.phase}; {_REMOVED.format(out=r.output)}")
-        elif r is not None and getattr(r, "file_lost", False):
-            _say(f"\nstopped by {name} in phase {r.phase}; {_lost(r)}")
-        elif r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
-            _say(f"\nstopped by {name} in phase {r.phase}; no file was made; the same command starts the series")
-        else:
-            _say(f"\nstopped by {name}{' in phase ' + r.phase if r else ''}; {saved}; {again} completes it")
+        _say(_stopped_line(exc, r, args, p))
         return _finish(r, 128 + getattr(exc, "signum", 2))
     except Exception as exc:
+        guard.finish()
         r = getattr(exc, "result", None)
         known = isinstance(exc, (DeviceError, OSError, ValueError))
         _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
@@ -404,6 +397,9 @@ def _series(guard, args, p) -> int:
                 f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
             )
         return _finish(r, 1)
+    # complete, the tube confirmed off or the warning due: a Ctrl-C from here on (up to 100 ms
+    # after the last line, as the interpreter finishes) changes nothing and says nothing
+    guard.finish()
     if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
         _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
         return 0
@@ -415,6 +411,44 @@ def _series(guard, args, p) -> int:
         err=False,
     )
     return _finish(res, 0, err=False)
+
+
+def _stopped_line(exc, r, args, p) -> str:
+    """The line of a series a signal stopped (``exc``; ``r``: its result, if it has one): what
+    the file holds, and how it is completed."""
+    from acquisition.guardian import StopSignal
+
+    name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+    saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+    where = f"\nstopped by {name}{' in phase ' + r.phase if r else ''}"
+    if r is not None and getattr(r, "previous_aside", None) is not None:
+        return f"{where}; {_aside(r, args)}"
+    if r is not None and r.previous_kept:
+        return f"{where}; {_KEPT.format(out=r.output)}"
+    if r is not None and getattr(r, "file_removed", False):
+        return f"{where}; {_REMOVED.format(out=r.output)}"
+    if r is not None and getattr(r, "file_lost", False):
+        return f"{where}; {_lost(r)}"
+    if r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
+        return f"{where}; no file was made; the same command starts the series"
+    if r is not None and _holds_the_whole_series(r, p, args):
+        # stopped after its last frame (before the close): "--resume completes it" offered a
+        # resume that finds nothing to take
+        return f"{where}; all {saved}: the series is complete"
+    return f"{where}; {saved}; `{resume_command(args)}` completes it"
+
+
+def _holds_the_whole_series(r, p, args) -> bool:
+    """Whether the experiment file of a stopped run holds every frame of the series (what a
+    ``--resume`` would find: nothing to take). False when it cannot be read."""
+    if not r.frames_total:
+        return False
+    from acquisition.protocols.compression_series import _existing, plan
+
+    try:
+        return plan(p, _existing(Path(r.output), p, sim=args.sim), warm=True).n_frames == 0
+    except Exception:  # (the file unreadable now: the usual line, which offers --resume)
+        return False
 
 
 #: An --overwrite stopped before its first frame: the file it was to replace is there, as it was
@@ -815,7 +849,7 @@ def _source_command(args, guard) -> int:
             guardian_gone(src, exc)  # then switched off after the error line (below)
             raise
         try:
-            code = _source_action(src, args)
+            code = _source_action(src, args, guard)
             guard.settle()  # a stop lost meanwhile switches off like any other
         except KeyboardInterrupt as exc:
             # XOF whatever this command had begun (always accepted): the line then states the tube.
@@ -835,6 +869,9 @@ def _source_command(args, guard) -> int:
             guard.cleanup()  # from here a signal must not cut the switch-off short
             _close_after(src, exc)  # a failed command leaves the tube off, or close() raises that it may not be
             raise
+        # decided and said: a Ctrl-C as the link is let go (close()) ended `source on` on "stopped by
+        # SIGINT; WARNING: X-RAYS MAY STILL BE ON", the tube confirmed off the line before
+        guard.finish()
         src.close()
         return code
     except (DeviceError, ValueError) as exc:
@@ -1161,9 +1198,14 @@ def _source_status(src, args) -> int | None:
     return None
 
 
-def _source_action(src, args) -> int:
-    """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome."""
+def _source_action(src, args, guard=None) -> int:
+    """``status``, ``warm-up``, ``on`` or ``off`` on the connected ``src``; prints the outcome.
+    Before the warm-up and the XON, a stop the guard raised that never reached the command (a
+    library's bare ``except:`` swallowed it inside an import) is raised again, as a series does
+    before each (:meth:`~acquisition.guardian.SignalGuard.raise_if_lost`)."""
     from acquisition.errors import DeviceError
+
+    lost = getattr(guard, "raise_if_lost", lambda: None)
 
     if args.action == "status":
         code = _source_status(src, args)
@@ -1172,6 +1214,7 @@ def _source_action(src, args) -> int:
     elif args.action == "warm-up":
         try:
             kv, ua = args.whole or (None, None)  # (checked and rounded before the port was opened)
+            lost()  # no warm-up (it emits) after a stop that never reached the command
             seconds = src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=kv, ua=ua)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
@@ -1185,6 +1228,7 @@ def _source_action(src, args) -> int:
             flush=True,
         )
         try:
+            lost()  # no XON after a stop that never reached the command
             r = src.on(*args.whole)  # (checked and rounded before the port was opened)
             _hold_beam(src, args, r)
         except DeviceError as exc:

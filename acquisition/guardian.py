@@ -191,6 +191,7 @@ class SignalGuard:
         self._cleaning = False  # cleanup() entered: the switch-off owns the run
         self._old_hook = None  # sys.unraisablehook while the guard is installed
         self._redelivered: list = []  # stops lost in a finalizer, being delivered again
+        self.left: dict[int, object] = {}  # the handlers replaced, once finish() ignores the signals
 
     def __enter__(self) -> SignalGuard:
         self._depth += 1
@@ -301,7 +302,7 @@ class SignalGuard:
         """Install the handlers again. C libraries may replace them behind Python's back (gmsh,
         building the virtual bench, resets SIGTERM to the default, which would kill the run
         with the tube on): the protocol calls this after building devices and at every phase."""
-        if self._old and threading.current_thread() is threading.main_thread():
+        if self._old and not self.left and threading.current_thread() is threading.main_thread():
             for sig in self._old:
                 signal.signal(sig, self._handle)
             # gmsh also resets SIGPIPE to its default at the C level while Python still reports
@@ -315,6 +316,27 @@ class SignalGuard:
         """Defer every signal from now on (returns self; usable as ``with guard.cleanup():``)."""
         self.stopping = self._cleaning = True
         return self
+
+    def finish(self) -> None:
+        """The run's outcome is decided (the tube dealt with, the exit code chosen): from now on
+        its signals are ignored, and stay ignored when the guard is left, until the process
+        exits. For a command line, whose last lines follow and whose process ends with them.
+
+        Why: left as before, the guard gave the signals back to the command line's handler,
+        which raises, and Python's own finalization sets a Python handler back to the default:
+        a Ctrl-C in the 10-100 ms between a complete series' last line and the exit ended the
+        process by SIGINT (exit -2), or said "interrupted; no partial output was left" under 8
+        frames written (review s49). Nor a handler that says something: the tube's line stays the
+        last, and "switching the X-ray tube off first, please wait" came after it. Ignored, not
+        deferred: nothing is left to stop. A caller that goes on in the same process puts back
+        what it had (:attr:`left`: the handlers this guard replaced). A stop lost in a finalizer
+        before it is still raised as the guard is left (:meth:`settle`)."""
+        if not self._old:  # not installed (another thread): nothing to ignore
+            return
+        for sig in self._old:
+            signal.signal(sig, signal.SIG_IGN)
+        self.left = dict(self._old)
+        self._old = dict.fromkeys(self._old, signal.SIG_IGN)  # what __exit__ puts in place
 
     def _unraisable(self, unraisable) -> None:
         """Python drops an exception raised while a finalizer runs (h5py's weak references die

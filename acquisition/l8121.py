@@ -23,7 +23,7 @@ each keeping the safety rules of the hardware notes:
   ``HIV``/``CUR``; B: the presets ``PHV``/``PCU``) and reads them back (A: ``SVI``; B:
   ``SPV``/``SPC``), switches on and waits for a stable beam;
 - :meth:`L8121.check` polls once while the beam is on (A: ``SAR``, ``SIN``; B: ``STS``, ``SHV``,
-  ``SCU``, ``SIN``; ``SER`` at most every :data:`ERROR_POLL_S`) and, on overload, an open
+  ``SCU``, ``SIN``; ``SER`` at most every ``error_poll_s``) and, on overload, an open
   interlock, a dropped beam or a controller error code, switches off and raises
   :class:`~acquisition.errors.SourceFault`;
 - :meth:`L8121.off` switches off and confirms it with ``STS``; :meth:`L8121.close` and the context
@@ -126,7 +126,8 @@ logger = logging.getLogger(__name__)
 #: the terminal (each layer that tried logged its own copy, and the operator read it three times).
 OFF_FAILURE = "tube_off_failure"
 
-#: With the beam on (check(), on()'s ramp, the warm-up's wait) ``SER`` is read at most this often,
+#: The default of ``SourceConfig.error_poll_s`` (``[source] error_poll_s``): with the beam on
+#: (check(), on()'s ramp, the warm-up's wait) ``SER`` is read at most this often,
 #: after the poll's beam checks. Not every poll: each query costs the link's spacing (A 50 ms,
 #: B 60 ms) and the beam checks (A ``SAR SIN``, B ``STS SHV SCU SIN``) keep their period. B's
 #: public driver cycles SER in its poll, 20 ms apart; at radiokit's 60 ms a fifth query every
@@ -134,6 +135,11 @@ OFF_FAILURE = "tube_off_failure"
 #: fault goes unnoticed (L8121.md: a reason to stop) to about a second, for about one
 #: exchange a second of link time.
 ERROR_POLL_S = 1.0
+
+#: The longest ``error_poll_s`` a configuration may set: a relay or internal fault (L8121.md: a
+#: reason to stop high voltage) unnoticed for up to a minute of beam. A unit without ``SER`` is
+#: ``error_query = false``, not a period nobody reaches.
+ERROR_POLL_MAX_S = 60.0
 
 
 class SettingRefused(ValueError):
@@ -364,6 +370,8 @@ class SourceConfig:
     # L8121.md asks of a unit that differs: codes that still allow X-rays, and false for no SER
     allowed_error_codes: tuple[int, ...] = ()
     error_query: bool = True
+    # with the beam on, SER is read at most this often, after a poll's beam checks (ERROR_POLL_S)
+    error_poll_s: float = ERROR_POLL_S
     # not a field (no annotation), not configuration: the model L8121.resolved_config() put in
     # ``model`` from the probe's TYP when none was configured, so that a connect that finds
     # another says the unit changed, not "configure model=None" (which the user did)
@@ -402,6 +410,7 @@ class SourceConfig:
             "ready_timeout_s",
             "off_confirm_s",
             "beam_drop_fraction",
+            "error_poll_s",
         ):
             setattr(self, name, _finite(getattr(self, name), name))
         for name in ("min_interval_s", "timeout_s", "voltage_scale", "probe_timeout_s"):
@@ -461,6 +470,16 @@ class SourceConfig:
         ):
             if getattr(self, name) == 0:  # timeout_s None: the dialect's
                 raise SettingRefused(f"{name} must be > 0")
+        if not 0 < self.error_poll_s <= ERROR_POLL_MAX_S:
+            raise SettingRefused(
+                f"error_poll_s = {self.error_poll_s:g}: "
+                + (
+                    f"at most {ERROR_POLL_MAX_S:g} s (a controller fault unnoticed that long with the beam on; "
+                    "a unit without SER is error_query = false)"
+                    if self.error_poll_s > 0
+                    else "expected a number of seconds above 0 (how often SER is read with the beam on)"
+                )
+            )
         for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
             if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
                 raise SettingRefused(
@@ -1528,7 +1547,7 @@ class L8121:
         self.port_opened = False
         self._last_state: SourceState | None = None
         self._beam: tuple[int, int] | None = None  # the set values while this driver keeps the beam on
-        # when SER was last read (time.monotonic()), for ERROR_POLL_S's bound with the beam on
+        # when SER was last read (time.monotonic()), for error_poll_s's bound with the beam on
         self._error_read_at: float | None = None
         # time.time() just before the last SER read that found no fault: a beam's frames after it
         # are not vouched for once a later SER reads one (the code may have stood since)
@@ -2501,7 +2520,7 @@ class L8121:
         return "L8121.md gives dialect A's error codes no meaning beyond 0, none"
 
     def _watch_error_code(self, when: str) -> None:
-        """With the beam on: read ``SER`` when :data:`ERROR_POLL_S` has passed since it was last
+        """With the beam on: read ``SER`` when ``config.error_poll_s`` has passed since it was last
         read, and switch off (:meth:`_trip`, ``XOF`` confirmed by ``STS``) on a code the
         configuration does not allow, naming it and ``when`` ("with the beam on"). L8121.md: B's
         1-4 are relay or internal faults, a reason to stop high voltage; before s47ser a code that
@@ -2514,7 +2533,7 @@ class L8121:
         if not self.config.error_query:
             return
         now = time.monotonic()
-        if self._error_read_at is not None and now - self._error_read_at < ERROR_POLL_S:
+        if self._error_read_at is not None and now - self._error_read_at < self.config.error_poll_s:
             return
         self._error_read_at, asked, good = now, time.time(), self._error_good_at
         code = self.error_code()
@@ -2528,7 +2547,7 @@ class L8121:
 
     def error_code_after_beam(self) -> None:
         """After a beam period's normal ``XOF``: read ``SER`` once, the tube off, so that the
-        period's last second (a poll within :data:`ERROR_POLL_S` of the last read skips it, and
+        period's last second (a poll within ``error_poll_s`` of the last read skips it, and
         after a series' last period nothing reads it again) is vouched for by a read too, without
         holding the switch-off back. A code not allowed raises :class:`SourceFault` naming it; it
         and a failed read carry ``vouched_until`` (see :meth:`_watch_error_code`). Nothing is
@@ -3269,7 +3288,7 @@ class L8121:
         ``beam_drop_fraction`` of the set value (or above it by as much: ``2 - beam_drop_fraction``
         of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
-        With the beam on, ``SER`` is read last, at most every :data:`ERROR_POLL_S`: a code not in
+        With the beam on, ``SER`` is read last, at most every ``error_poll_s``: a code not in
         ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`). ``error_code=False``
         skips it: the poll just before a normal ``XOF``, whose ``SER`` (an exchange, or a reply
         time-out, more before the switch-off) is read after it instead (:meth:`error_code_after_beam`).

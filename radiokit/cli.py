@@ -1921,8 +1921,38 @@ def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
-    with _printable_names():
+    with _printable_names(), _signals_given_back(argv is not None):
         return _main(argv)
+
+
+#: The signals a command may take over (radiokit.interrupts.STOP_SIGNALS, and acquire's Ctrl-Z).
+_TAKEN = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGTSTP") if hasattr(signal, name)
+)
+
+
+@contextlib.contextmanager
+def _signals_given_back(give: bool):
+    """With ``give`` (``main(argv)`` called from a Python program, which goes on after it), the
+    signals' handlers put back as they were found. Not for the program itself (``argv`` None): a
+    finished ``acquire`` leaves them ignored until the process exits (its guard's ``finish``),
+    since Python's own finalization turns a Python handler back into the default action, and a
+    Ctrl-C then ended a complete series by SIGINT."""
+    found = {}
+    if give and _on_main_thread():
+        found = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    try:
+        yield
+    finally:
+        for sig, handler in found.items():
+            if handler is not None:  # None: installed outside Python, cannot be put back
+                signal.signal(sig, handler)
+
+
+def _on_main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 def _check_environment() -> None:

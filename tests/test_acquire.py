@@ -571,18 +571,17 @@ def test_a_controller_error_mid_step_stops_the_series_keeping_its_frames(tmp_pat
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
-def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(
-    tmp_path, scene_toml, bench, dialect, monkeypatch
-):
+def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path, scene_toml, bench, dialect):
     """SER is read at most every ERROR_POLL_S: a code that comes up after the last read of a beam
     period (here: no read during it at all) was vouched for by the period's end (its last poll
     skips SER within the interval, and after the series' last period nobody reads it again). The
     driver reads SER once the tube is off (XOF is not delayed by it): a code not allowed stops the
     series and labels the frames since the last good SER invalid (review s47rv4)."""
-    import acquisition.l8121 as l8121
+    from acquisition.l8121 import ERROR_POLL_MAX_S
 
-    monkeypatch.setattr(l8121, "ERROR_POLL_S", 1e6)  # no SER with the beam on: the gap, deterministic
     p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    # no SER with the beam on: the gap, deterministic (the series' beam periods last seconds)
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
     dev = sim_devices(p, bench=bench)
     model = dev.emulator
     seen = {"frames": 0}
@@ -694,6 +693,33 @@ def _cli_stopped_when(capsys, notebook: Path, said: str, *args, poll_s=0.05, aft
     code = _cli(*args)
     t.join()
     return code, capsys.readouterr().err
+
+
+def test_cli_a_stop_after_the_last_frame_says_the_series_is_complete(tmp_path, scene_toml, capsys, monkeypatch):
+    """A Ctrl-C after the series' last frame (its beam period over, every frame valid) but before
+    its close said "N frames saved in X; `... --resume` completes it", and that resume found
+    nothing to take. The line now says the file holds the whole series; exit 130 (it was
+    stopped). The signal is real, raised as the close phase begins (the point is the test's)."""
+    from acquisition.protocols import compression_series as cs
+
+    p = protocol(tmp_path, scene_toml, link_s=0.01, frames_per_step=1)
+    path = tmp_path / "protocol.toml"
+    path.write_text(p.to_toml())
+    close = cs._phase_close
+
+    def stopped_first(r):
+        signal.raise_signal(signal.SIGINT)  # the guard's handler raises at the next bytecode
+        close(r)
+
+    assert cs._PHASES[-1] == ("close", close)
+    monkeypatch.setattr(cs, "_PHASES", (*cs._PHASES[:-1], ("close", stopped_first)))
+    assert _cli("acquire", str(path), "--sim", "-q") == 130
+    err = capsys.readouterr().err
+    total = DARKS + FLATS + len(STEPS)
+    assert f"stopped by SIGINT in phase close; all {total} frames saved in {p.output}: the series is complete" in err
+    assert "--resume" not in err and re.search(r"tube off \(confirmed by STS: \w+\)\n*$", err), err
+    assert _cli("acquire", str(path), "--sim", "-q", "--resume") == 0  # (what a resume finds: nothing to take)
+    assert f"already complete ({total} frames)" in capsys.readouterr().out
 
 
 def test_cli_dry_run_prints_the_plan_and_touches_nothing(tmp_path, scene_toml, capsys):
@@ -1825,6 +1851,54 @@ def test_a_stop_swallowed_inside_an_import_stops_the_series_before_any_x_ray_com
     assert stop.value.signum == signal.SIGINT and res.phase == "connect", res  # where it came
     assert res.tube_off is True and not dev.emulator.xray_on
     assert not {"XON", "WUP"} & {c.split()[0] for c in dev.emulator.commands}, dev.emulator.commands
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("action", ["on", "warm-up"])
+def test_a_stop_swallowed_inside_an_import_stops_source_on_and_warm_up_before_any_x_ray_command(
+    tmp_path, monkeypatch, dialect, action
+):
+    """The series' rule (the test above) for `source on` and `source warm-up`: a stop raised inside
+    an import past the wait's cap and swallowed there left the guard stopping, and the command went
+    on to send XON (WUP), every later Ctrl-C only saying "please wait". It is now raised again
+    before the X-ray command: nothing that emits is sent, the tube is confirmed off, exit 130. The
+    import, its bare except and the signal are real (the cap made short), the emulator is on a pty
+    made here; where the import happens is the test's (after the guardian starts, before the
+    connect: the command's own imports there are already loaded in this process)."""
+    import importlib
+
+    from conftest import run_cli
+
+    import radiokit.interrupts as interrupts
+    from acquisition import cli
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    name = f"swallowed_in_source_{action.replace('-', '_')}_{dialect}_{os.getpid()}"
+    (tmp_path / f"{name}.py").write_text(SWALLOWED_PAST_THE_CAP)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(interrupts, "IMPORT_WAIT_S", 0.05)
+    behind = cli._behind_guardian
+
+    def behind_then_import(src):
+        guarded = behind(src)
+        importlib.import_module(name)
+        return guarded
+
+    monkeypatch.setattr(cli, "_behind_guardian", behind_then_import)
+    model = L8121Model(dialect=dialect, warmed_up=action == "on", warmup_s=0.5, ramp_s=0.05)
+    given = ["--kv", "60", "--ua", "250"] + (["--for", "0.5"] if action == "on" else [])
+    try:
+        with PtyServer(model) as server:
+            res = run_cli("acquire", "source", action, "--port", server.url, "--dialect", dialect, "-q", *given)
+        assert sys.modules[name].IMPORTED  # swallowed: the import ran to its end
+    finally:
+        sys.modules.pop(name, None)
+    sent = {c.split()[0] for c in model.commands}
+    assert not {"XON", "WUP"} & sent, model.commands
+    assert not model.xray_on and model.state != 1
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("stopped by SIGINT; tube off (confirmed by STS:"), res.stderr
 
 
 @pytest.mark.parametrize("module", ["numpy", "acquisition.cli"])

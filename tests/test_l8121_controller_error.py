@@ -205,6 +205,31 @@ def test_a_controller_error_with_the_beam_on_switches_off(dialect, code):
     assert all(b - a >= ERROR_POLL_S * 0.99 for a, b in zip(sers[-2:-1], sers[-1:])), sers
 
 
+@pytest.mark.parametrize("period_s", [0.3, 2.0])
+def test_the_error_poll_period_is_the_configurations(dialect, period_s):
+    """``error_poll_s`` (``[source] error_poll_s``; was the constant ERROR_POLL_S, 1 s) sets how
+    often the polls read SER with the beam on: 1.5 s of polls every 50 ms read it about
+    1.5 / period_s times, each gap at least the period (and at most the period and one poll cycle:
+    A's SAR SIN, B's STS SHV SCU SIN, 20 ms apart, then poll_s)."""
+    model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, error_poll_s=period_s, **FAST) as src:
+        assert src.config.error_poll_s == period_s
+        src.on(60, 250)
+        n = len(model.log)
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            src.check()
+            time.sleep(FAST["poll_s"])
+        src.off()
+    sers = [e.t for e in model.log[n:] if e.command == "SER" and e.t < model.log[-1].t]
+    sers = [t for t in sers if not any(e.command == "XOF" and e.t <= t for e in model.log[n:])]
+    gaps = [b - a for a, b in zip(sers, sers[1:])]
+    cycle = 5 * FAST["min_interval_s"] + FAST["poll_s"] + 0.1  # one poll's queries and its pause, with room
+    assert all(period_s * 0.99 <= g <= period_s + cycle for g in gaps), (period_s, gaps)
+    expected = 1.5 / period_s
+    assert expected - 2 <= len(sers) <= expected + 1, (period_s, sers)
+
+
 def test_a_garbled_ser_reply_with_the_beam_on_is_as_bad_as_any_garbled_poll(dialect):
     """An unreadable SER mid-exposure is what an unreadable SAR or SIN is (check()'s reading):
     the fail-safe switches off, confirmed, and the error names the reply."""

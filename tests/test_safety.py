@@ -882,6 +882,89 @@ def test_sigint_inherited_as_ignored_still_stops_the_run(tmp_path, scene_file, c
     assert not model.xray_on and off_s is not None and off_s <= OFF_BOUND_S
 
 
+#: The storm's period: a Ctrl-C every 2 ms, from its trigger until the command has exited. The
+#: window it looks for (the guard left, the last line said, the interpreter finishing) lasted
+#: 10 to 100 ms here; 2 ms puts several signals into any part of it in one run.
+STORM_PERIOD_S = 0.002
+
+
+def _ctrl_c_storm(acq, start) -> int:
+    """Send Ctrl-C (SIGINT to the process group) every :data:`STORM_PERIOD_S` from when ``start()``
+    holds until the command exits; returns how many were sent."""
+    wait_until(lambda: start() or acq.proc.poll() is not None, what="the storm's trigger", period=0.001)
+    sent = 0
+    while acq.proc.poll() is None:
+        try:
+            os.killpg(acq.proc.pid, signal.SIGINT)
+        except ProcessLookupError:
+            break
+        sent += 1
+        time.sleep(STORM_PERIOD_S)
+    return sent
+
+
+@pytest.mark.parametrize("trigger", ["the last frame", "the summary line"])
+def test_ctrl_c_at_the_series_end_says_what_was_written_and_exits_0_or_130(tmp_path, scene_file, controller, trigger):
+    """Found (review s49): a Ctrl-C within ~10 ms after a complete series' last line ended the
+    process by SIGINT (exit -2), or printed "interrupted; no partial output was left" below the
+    tube's line with every frame in the file: the guard was left (its handlers gave way to the
+    command line's, which raise) while the command still had to return, and then the interpreter
+    finished (it sets a Python handler back to the default: death by signal). Measured: a storm
+    of Ctrl-C from the summary line ended 20 runs in 20 by SIGINT (A and B; 2 of them "no partial
+    output", 5 a traceback, 4 "switching the X-ray tube off first, please wait" after the tube's
+    line). Now: exit 0 for the series that completed (a Ctrl-C after its end changes nothing),
+    130 for one stopped, the lines say what the file holds, and the tube's line is the last."""
+    model, server = controller()
+    acq = Acquire(write_protocol(tmp_path, scene_file, server, series=BEFORE_PROJECTIONS), "--sim", "-q")
+    total = DARKS + FLATS + PER_STEP  # BEFORE_PROJECTIONS: one step
+    if trigger == "the last frame":
+        start = notebook_has(tmp_path, rf"frame {total - 1} written")
+    else:
+        start = lambda: any("frames written" in ln for ln in acq.lines)
+    sent = _ctrl_c_storm(acq, start)
+    code = acq.wait()
+    record(f"Ctrl-C every 2 ms from {trigger} ({sent} sent)", model, acq, None, code)
+    assert sent > 0, acq.output
+    assert code in (0, 130), f"exit {code}\n{acq.output}"  # never ended by the signal itself
+    assert not model.xray_on and model.state != 1
+    assert CONFIRMED.search(acq.last_line), acq.output  # the tube's line, nothing after it
+    assert "no partial output" not in acq.output and "Traceback" not in acq.output, acq.output
+    assert "Exception ignored" not in acq.output, acq.output
+    with h5py.File(tmp_path / "series.h5", "r") as h5:
+        held = int(h5["entry"].attrs["frames_complete"])
+        keys = h5["entry/instrument/detector/image_key"][:held]
+    valid = int(np.sum(keys != ImageKey.INVALID))  # a frame taken after the monitor's last reading is not
+    if code == 0:
+        assert f"{held} frames written ({held} in the file)" in acq.output and "stopped by" not in acq.output
+        assert valid == held == total
+    else:
+        assert trigger == "the last frame", acq.output  # the summary line is said once the series is done
+        assert "stopped by SIGINT" in acq.output and f"{held} frames saved in" in acq.output, acq.output
+        if valid == total:  # stopped after its last frame: the file holds the whole series
+            assert "--resume" not in acq.output and "the series is complete" in acq.output, acq.output
+        else:  # what is missing, --resume takes
+            assert "--resume` completes it" in acq.output and "complete" not in acq.last_line, acq.output
+
+
+def test_ctrl_c_after_source_on_has_switched_off_keeps_its_last_line(controller):
+    """`source on --for`'s storm (as the series' above) from its "over: tube off (confirmed)"
+    line: a Ctrl-C that landed as the command let the link go (close(), after that line) ended it
+    on "stopped by SIGINT; WARNING: X-RAYS MAY STILL BE ON", exit 130, with the tube confirmed off
+    a moment before (3 runs in 3, dialect A). The command's outcome is decided before the link is
+    let go: exit 0 (130 if the stop came before), the tube's confirmed line last, never the
+    warning, never death by the signal."""
+    model, server = controller()
+    port = ["--port", server.url, "--dialect", model.dialect]
+    acq = Acquire("source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.3", "-q")
+    sent = _ctrl_c_storm(acq, lambda: any(" s over: tube off" in ln for ln in acq.lines))
+    code = acq.wait()
+    record(f"source on: Ctrl-C every 2 ms from its last line ({sent} sent)", model, acq, None, code)
+    assert sent > 0 and code in (0, 130), f"exit {code}\n{acq.output}"
+    assert not model.xray_on and WARNING not in acq.output, acq.output
+    assert CONFIRMED.search(acq.last_line), acq.output
+    assert "Traceback" not in acq.output and "no partial output" not in acq.output, acq.output
+
+
 @ONE_DIALECT
 def test_ctrl_z_with_x_rays_on_stops_the_series_instead_of_suspending_it(tmp_path, scene_file, controller):
     """Found: Ctrl-Z (SIGTSTP to the job's process group) suspended the acquiring process -- its
@@ -1305,6 +1388,11 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     # the watchdog in every warm-up; and the driver rounds before XON, which is after the warm-up
     ({"limits": {"poll_s": 2.0}}, r"watchdog_s = 5\.0: expected at least 4 poll periods \(8 s\)"),
     ({"voltage_kv": 60.5, "current_ua": 165, "watts_max": 10}, r"61 kV x 165 µA = 10\.065 W exceeds watts_max = 10 W"),
+    # the controller error code's period with the beam on (was the constant ERROR_POLL_S)
+    ({"error_poll_s": 0}, r"error_poll_s = 0: expected a number of seconds above 0"),
+    ({"error_poll_s": float("nan")}, r"\[source\] error_poll_s = nan: expected a finite number"),
+    ({"error_poll_s": "1"}, r"\[source\] error_poll_s = '1': expected a number"),
+    ({"limits": {"error_poll_s": 600}}, r"error_poll_s = 600: at most 60 s"),
 ]
 
 
@@ -1339,6 +1427,19 @@ def test_refused_exposure_sends_nothing(tmp_path, scene_file, controller):
     record("voltage_kv = 900 (run)", model, acq, None, code)
     assert code == 2 and "voltage_kv = 900" in acq.last_line and "Traceback" not in acq.output
     assert model.commands == []
+
+
+@ONE_DIALECT
+def test_a_bad_error_poll_period_sends_nothing(tmp_path, scene_file, controller):
+    """``[source] error_poll_s`` (how often SER is read with the beam on) is a setting like the
+    others: a bad one is refused in one line naming the file and the key before any byte is sent."""
+    model, server = controller()
+    proto = write_protocol(tmp_path, scene_file, server, source={"error_poll_s": -1})
+    acq = Acquire(proto, "--sim", "-q")
+    code = acq.wait()
+    assert code == 2 and model.commands == [], acq.output
+    lines = [ln for ln in acq.lines if ln.strip()]
+    assert len(lines) == 1 and str(proto) in lines[0] and "error_poll_s" in lines[0], acq.output
 
 
 def test_resume_does_not_open_a_path_stored_as_the_protocol(tmp_path, scene_file, capsys):
