@@ -261,10 +261,14 @@ def robust_average(frames, *, clip_sigma=5.0, block_rows=128, return_std=False, 
             others = np.ones(blk.shape, bool)
             np.put_along_axis(others, worst[None], False, axis=0)
             m_o = blk.mean(axis=0, where=others)
-            s_o = np.sqrt(((blk - m_o) ** 2).sum(axis=0, where=others) / max(n - 2, 1))
+            # Squared in units of the panel's noise: in counts, float32 squares overflow past
+            # 1.8e19 (float frames in absurd units, 1e20), every std came out inf, its median too,
+            # and a noisy pixel went unflagged (s50). Scaling the frames now scales the std alone.
+            unit = np.float32(sigma)
+            s_o = unit * np.sqrt((((blk - m_o) / unit) ** 2).sum(axis=0, where=others) / max(n - 2, 1))
             x_w = np.take_along_axis(blk, worst[None], axis=0)[0]
             outlier = np.abs(x_w - m_o) > clip_sigma * np.maximum(s_o, sigma / 4)
-            s_all = blk.std(axis=0, ddof=1)
+            s_all = unit * (blk / unit).std(axis=0, ddof=1)
             std[r0 : r0 + block_rows] = np.where(outlier, s_o, s_all)
         if callback is not None:
             callback(blk.shape[1])
@@ -1859,7 +1863,7 @@ def _dark_noise(darks) -> float | None:
     if darks.shape[0] < 2:
         return None
     sample = darks[:, :: max(1, darks.shape[1] // 64)]
-    return float(np.median(np.std(sample, axis=0, ddof=1)))
+    return float(np.median(np.std(sample, axis=0, ddof=1, dtype=np.float64)))  # float32 squares overflow past 1.8e19
 
 
 @dataclass

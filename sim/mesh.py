@@ -28,13 +28,12 @@ from sim.scene import Scene
 __all__ = ["FEMesh", "build_mesh", "choose_model", "estimate_elements", "check_mesh_size", "MAX_ELEMENTS"]
 
 #: The most elements (tetrahedra, or triangles for the reduced models) a scene may ask gmsh for,
-#: by :func:`estimate_elements`. gmsh cannot be stopped while it meshes: Python runs a signal's
-#: handler only when gmsh's call returns, so Ctrl-C or a ``kill`` waits for it (a 1e-6 mm contact
-#: size held gmsh at 1.3 GB for minutes, review s41cli). The bound keeps that wait short: gmsh
-#: made 199 000 tetrahedra of seed-breast in 19-42 s on a loaded 2-core machine, so about 10-20 s
-#: here. It is 20 times the largest mesh the convergence study solved (0.7 / 6 / 1 mm: 4 800
-#: tetrahedra, 24 000 unknowns, 2200 s of mechanics; README), beyond which the mechanics' direct
-#: solves would take days anyway.
+#: by :func:`estimate_elements`. gmsh runs in a child process killed on a stop (:func:`_in_child`),
+#: so Ctrl-C no longer waits for it; the bound keeps the memory and time in reason (a 1e-6 mm
+#: contact size held gmsh at 1.3 GB for minutes, review s41cli; 80 000 tetrahedra of
+#: seed-breast take 2.8 s of gmsh on an idle 2-core machine). It is 20 times the largest mesh
+#: the convergence study solved (0.7 / 6 / 1 mm: 4 800 tetrahedra, 24 000 unknowns, 2200 s of
+#: mechanics; README), beyond which the mechanics' direct solves would take days anyway.
 MAX_ELEMENTS = 100_000
 
 
@@ -261,6 +260,76 @@ def _keeping_signal_handlers(init) -> None:
                 signal.signal(sig, handler)
 
 
+def _in_child(name, *args):
+    """``name(*args)`` (a gmsh step of this module) in a child Python process, its result back.
+
+    Why: gmsh cannot be stopped. A signal's Python handler runs only when gmsh's C call returns,
+    so Ctrl-C or a ``kill`` during ``gmsh.model.mesh.generate`` waited for the whole mesh (2.2 s
+    near :data:`MAX_ELEMENTS` on an idle 2-core machine, tens of seconds under load). The child
+    is killed (SIGKILL) as soon as this process stops, by whatever exception. It runs in its own
+    session, so the terminal's Ctrl-C reaches this process alone (one "interrupted" line, no
+    traceback of the child's), and gmsh's resetting of signal handlers (SIGTERM, SIGHUP, SIGPIPE
+    to their defaults) stays in the child. Costs a Python start and gmsh's import per mesh, about
+    0.3 s."""
+    import os
+    import pickle
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    here = str(Path(__file__).resolve().parent.parent)  # this checkout's sim, installed or not
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [here, os.environ.get("PYTHONPATH")]))}
+    # not communicate(): on Ctrl-C it waits 0.25 s for a child that will not stop by itself
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "import sim.mesh as m; m._child_main()"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            start_new_session=True,
+            env=env,
+        )
+        try:
+            with proc.stdin:
+                proc.stdin.write(pickle.dumps((name, args)))
+            with proc.stdout:
+                out = proc.stdout.read()
+            proc.wait()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        try:
+            status, value = pickle.loads(out)
+        except Exception:
+            err.seek(0)
+            tail = err.read().decode(errors="replace").strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
+            raise RuntimeError(f"gmsh's process ended without a mesh: {tail[0]}") from None
+    if status == "error":
+        raise value
+    return value
+
+
+def _child_main():
+    """:func:`_in_child`'s other end: the call from stdin, its result (or exception) to stdout.
+    gmsh writes nothing to stdout with ``General.Terminal`` 0; fd 1 goes to stderr all the same
+    so that no stray print can corrupt the pickle."""
+    import os
+    import pickle
+    import sys
+
+    result_fd = os.dup(1)
+    os.dup2(2, 1)
+    name, args = pickle.loads(sys.stdin.buffer.read())
+    try:
+        reply = ("ok", globals()[name](*args))
+    except Exception as exc:  # raised again in the parent, as if gmsh ran there
+        reply = ("error", exc)
+    with os.fdopen(result_fd, "wb") as f:
+        f.write(pickle.dumps(reply))
+
+
 def _gmsh():
     import gmsh
 
@@ -449,6 +518,19 @@ def _keep_positive(occ, tags, planes, big):
 
 
 def _build_3d(scene, spec, grading):
+    pts, cells, region = _in_child("_gmsh_3d", scene, spec, grading)
+    cells = _orient_tets(pts, cells)
+    return FEMesh(
+        pts,
+        cells,
+        region,
+        "3d",
+        _symmetry_planes(scene),
+        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
+    )
+
+
+def _gmsh_3d(scene, spec, grading):
     gmsh = _gmsh()
     occ = gmsh.model.occ
     planes = _symmetry_planes(scene)
@@ -467,15 +549,7 @@ def _build_3d(scene, spec, grading):
     gmsh.model.mesh.generate(3)
     pts, cells, region = _extract(gmsh, 3, volumes)
     gmsh.clear()
-    cells = _orient_tets(pts, cells)
-    return FEMesh(
-        pts,
-        cells,
-        region,
-        "3d",
-        planes,
-        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
-    )
+    return pts, cells, region
 
 
 def _orient_tets(p, t):
@@ -504,6 +578,23 @@ def _profile_2d(scene):
 
 
 def _build_2d(scene, spec, grading, model):
+    pts, cells, region = _in_child("_gmsh_2d", scene, spec, grading, model)
+    a, b2, c = (pts[:, cells[i]] for i in range(3))
+    area = (b2[0] - a[0]) * (c[1] - a[1]) - (b2[1] - a[1]) * (c[0] - a[0])
+    neg = area < 0
+    cells[1, neg], cells[2, neg] = cells[2, neg].copy(), cells[1, neg].copy()
+    planes = ("y",) if scene.mesh.symmetry and "y" in _symmetry_planes(scene) else ()
+    return FEMesh(
+        pts,
+        cells,
+        region,
+        model,
+        planes,
+        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
+    )
+
+
+def _gmsh_2d(scene, spec, grading, model):
     gmsh = _gmsh()
     occ = gmsh.model.occ
     b = scene.body
@@ -541,19 +632,7 @@ def _build_2d(scene, spec, grading, model):
     gmsh.model.mesh.generate(2)
     pts, cells, region = _extract(gmsh, 2, surfaces)
     gmsh.clear()
-    a, b2, c = (pts[:, cells[i]] for i in range(3))
-    area = (b2[0] - a[0]) * (c[1] - a[1]) - (b2[1] - a[1]) * (c[0] - a[0])
-    neg = area < 0
-    cells[1, neg], cells[2, neg] = cells[2, neg].copy(), cells[1, neg].copy()
-    planes = ("y",) if y_sym else ()
-    return FEMesh(
-        pts,
-        cells,
-        region,
-        model,
-        planes,
-        meta={"size_inclusion_mm": spec.size_inclusion_mm, "size_far_mm": spec.size_far_mm, "grading_mm": grading},
-    )
+    return pts, cells, region
 
 
 def _build_axisymmetric(scene, spec, grading):

@@ -86,6 +86,28 @@ def test_robust_average_std_ignores_the_zinger_but_not_a_noisy_pixel():
     assert std[20, 20] > 5 * typical
 
 
+@pytest.mark.parametrize("scale", [1e16, 1e19])
+def test_robust_average_std_and_noisy_pixels_are_scale_invariant(scale):
+    """Float frames in absurd units (counts x 1e19: within float32's range, 3.4e38) squared their
+    deviations in float32, past 1.8e19 an overflow: every pixel's temporal std came out inf, the
+    median with it, so the noisy pixel went unflagged, and `radiokit process` printed
+    "RuntimeWarning: overflow encountered in square" (s50). The std is a length in counts: scaling
+    the frames scales it, and leaves the defect map as it was."""
+    rng = np.random.default_rng(1)
+    darks = rng.normal(100, 3, (12, 64, 64))
+    darks[:, 20, 20] = rng.normal(100, 30, 12)  # a noisy pixel
+    flats = rng.normal(3000, 20, (6, 64, 64))
+    _, std = robust_average(darks.astype(np.float32), return_std=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        _, std_k = robust_average((darks * scale).astype(np.float32), return_std=True)
+        cal_k = Calibration.from_frames((darks * scale).astype(np.float32), (flats * scale).astype(np.float32))
+    np.testing.assert_allclose(std_k / scale, std, rtol=1e-4)
+    cal = Calibration.from_frames(darks.astype(np.float32), flats.astype(np.float32))
+    assert cal.mask[20, 20] & PixelFlag.NOISY and np.count_nonzero(cal.mask) == 1, np.argwhere(cal.mask)
+    np.testing.assert_array_equal(cal_k.mask, cal.mask)
+
+
 def test_clean_panel_with_smooth_gain_has_no_defects():
     panel = _panel(n_dead=0, n_under=0, n_noisy=0, defect_columns=(), gain_variation=0.3)
     cal = _calibrate(panel)

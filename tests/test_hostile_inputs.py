@@ -2761,3 +2761,51 @@ def test_several_inputs_errors_keep_their_words_and_advice_when_pickled(tmp_path
     copy = pickle.loads(pickle.dumps(errors))
     assert str(copy) == str(errors) and [str(e) for e in copy.errors] == [str(e) for e in errors.errors]
     assert cli._reader_advice(copy) == {"dataset": said}
+
+
+def _float_experiment(path, scale):
+    """A uint16 experiment (an attenuating square, three steps) rewritten as float32 counts x
+    ``scale``: what a float file in other units gives `radiokit process`."""
+    rng = np.random.default_rng(0)
+    shape = (64, 64)
+    with ExperimentWriter(path, shape=shape) as w:
+        for _ in range(3):
+            w.append(rng.normal(100, 2, shape).round(), image_key=ImageKey.DARK)
+        for _ in range(3):
+            w.append(rng.normal(3000, 20, shape).round(), image_key=ImageKey.FLAT)
+        for s, c in enumerate([0.8, 0.78, 0.76], 1):
+            img = np.full(shape, 3000 * c)
+            img[24:40, 24:40] *= 0.8 - 0.05 * s
+            w.append((img + rng.normal(0, 20, shape)).round(), image_key=ImageKey.PROJECTION, step=s)
+    if scale != 1:
+        with h5py.File(path, "a") as h5:
+            name = "entry/instrument/detector/data"
+            x, attrs = h5[name][()].astype(np.float32) * np.float32(scale), dict(h5[name].attrs)
+            del h5[name]
+            ds = h5.create_dataset(name, data=x, chunks=(1, *shape), maxshape=(None, *shape))
+            ds.attrs.update(attrs)
+    return path
+
+
+_WARN = {"PYTHONWARNINGS": "default"}  # not run()'s "ignore": the warnings a user sees
+
+
+def test_process_of_counts_scaled_by_1e20_gives_the_unscaled_results_without_warnings(tmp_path):
+    """s50: float32 frames at 1e20 counts (within float32's range) printed "RuntimeWarning:
+    overflow encountered in square" three times: the calibration squared the darks' deviations in
+    float32, overflowing past 1.8e19, and every pixel's temporal noise came out inf. The
+    improvement factor and CNR are ratios of intensities: scaling the counts changes neither."""
+    got = {}
+    for scale in (1.0, 1e16, 1e20):
+        path = _float_experiment(tmp_path / f"x{scale:g}.h5", scale)
+        roi = ["--inclusion", "26", "38", "26", "38", "--background", "4", "16", "4", "16"]
+        # a real process with Python's warnings as a user's shell has them (run_cli ignores them)
+        res = run("process", path, "-q", "--no-report", "--preset", "fast", "--cross-check", "none", *roi, env=_WARN)
+        assert res.returncode == 0 and res.stderr == "", res.stderr
+        got[scale] = json.loads((tmp_path / f"x{scale:g}" / "results.json").read_text())["domains"]
+    for scale in (1e16, 1e20):
+        for domain in ("log", "negative"):
+            a, b = got[1.0][domain], got[scale][domain]
+            assert b["improvement_factor"]["1"] == pytest.approx(a["improvement_factor"]["1"], rel=1e-4), domain
+            assert b["cnr"]["1"] == pytest.approx(a["cnr"]["1"], rel=1e-4), domain
+            assert b["cnr_reference"] == pytest.approx(a["cnr_reference"], rel=1e-4), domain

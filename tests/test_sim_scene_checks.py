@@ -108,6 +108,7 @@ def no_meshing(monkeypatch):
         raise AssertionError("an invalid scene reached gmsh or the solver")
 
     monkeypatch.setattr(sim.mesh, "_gmsh", reached)
+    monkeypatch.setattr(sim.mesh, "_in_child", reached)  # gmsh runs in a child process
     monkeypatch.setattr(sim.mechanics.Solver, "__init__", reached)
 
 
