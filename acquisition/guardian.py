@@ -335,7 +335,9 @@ class SignalGuard:
             return
         for sig in self._old:
             signal.signal(sig, signal.SIG_IGN)
-        self.left = dict(self._old)
+        # a second call (the command line's series: its command, then the guard's runner) keeps
+        # the handlers the first found: it found only SIG_IGN, the guard's own (review s50rv2)
+        self.left = self.left or dict(self._old)
         self._old = dict.fromkeys(self._old, signal.SIG_IGN)  # what __exit__ puts in place
 
     def _unraisable(self, unraisable) -> None:

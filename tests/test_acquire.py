@@ -611,6 +611,45 @@ def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path
     assert list(keys[5:]) == [ImageKey.PROJECTION] * 3 and np.sum(keys == ImageKey.INVALID) == 3, keys
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_in_a_beam_period_reads_the_error_code_once_the_tube_is_off(tmp_path, scene_toml, bench, dialect):
+    """A stop (a real SIGINT) in a beam period after its last frame: the frames since the last good
+    poll are labelled invalid, but SER, read at most every ``error_poll_s`` (up to 60 s), was read
+    by nothing after the stop, where a normal end reads it after the XOF (the test above): a
+    controller code that came up since its last read left those frames valid, and the command line
+    said "all N frames saved: the series is complete". Now the stop's switch-off, confirmed, is
+    followed by one SER read too: the code labels the frames since the last good SER invalid, and
+    the stop is still what the run raises (review s50rv2)."""
+    from acquisition.guardian import StopSignal
+    from acquisition.l8121 import ERROR_POLL_MAX_S
+
+    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S  # no SER with the beam on: the gap, deterministic
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    seen = {"frames": 0}
+
+    def hook(phase, info):
+        seen["frames"] += phase == "frame"
+        if phase == "frame" and seen["frames"] == 4:  # the step's second frame
+            model.controller_error(2)
+        if phase == "frame" and seen["frames"] == 5:  # its last: the stop before the period's end
+            seen["n"] = len(model.log)
+            signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(StopSignal) as info:
+        run(p, devices=dev, progress=False, on_phase=hook)
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[seen["n"] :]]
+    first = after.index("XOF")
+    assert "SER" in after[first:], after  # read once the tube is off, never before the XOF
+    c = contents(p.output)
+    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
+    assert list(c["key"][:2]) == [ImageKey.DARK, ImageKey.FLAT]
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
+
+
 def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(
     tmp_path, scene_toml, bench, capsys
 ):

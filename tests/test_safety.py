@@ -1174,6 +1174,33 @@ def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     assert signal.set_wakeup_fd(-1) == -1
 
 
+def test_a_finished_guard_ignores_a_real_signal_and_keeps_what_it_replaced_through_a_second_finish():
+    """``finish()``: a real SIGINT and SIGTERM after it neither raise nor say anything, and the
+    signals stay ignored once the guard is left; ``left`` holds the handlers the guard replaced,
+    for a caller that goes on in the process. The command line finishes a series' guard twice (the
+    series' command, then the guard's runner): the second call made ``left`` all SIG_IGN, and a
+    caller putting it back (as the docstring says) left Ctrl-C and kill ignored for good."""
+    from acquisition.guardian import SignalGuard
+
+    def mine(signum, frame):  # the caller's own handler, before the guard
+        raise AssertionError("the caller's handler ran while the guard was finished")
+
+    before = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with SignalGuard() as guard:
+            guard.finish()
+            guard.finish()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.raise_signal(sig)  # ignored: no StopSignal, no "please wait"
+            guard.reinstall()  # (the protocol's call at each phase) does not take them back
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN == signal.getsignal(signal.SIGTERM)
+        assert guard.left[signal.SIGINT] is mine and guard.left[signal.SIGTERM] is mine, guard.left
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
 def test_a_stop_lost_in_a_finalizer_is_delivered_again():
     """Python drops an exception raised while a finalizer runs ("Exception ignored in:
     WeakValueDictionary...remove", h5py's object registry, during a frame write). A Ctrl-C whose

@@ -396,16 +396,50 @@ def test_source_on_without_a_time_is_refused_before_the_port_is_opened(capsys, g
 def test_a_fault_in_the_hold_ends_on_the_confirmed_switch_off(dialect, fast, capsys, fault, cause, state, code):
     """The hold polls as a series' beam monitor does: an interlock opened (or an overload) while
     the beam is held switches off, confirmed, and the line says why, exit 1 -- the same line as a
-    fault in the ramp."""
+    fault in the ramp. The fault lands between two polls (right after one's last exchange, SER):
+    at a model time instead (0.5 s after XON) it landed, under load, between B's STS and SCU once,
+    and the line was the overload seen as a dropped beam first (the next test)."""
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.1)
     # 0.5 s after XON: past the ramp (0.1 s) and the wait for a stable beam (at most 0.3 s, FAST)
-    inject = lambda m: m.inject_after("XON", lambda: getattr(m, fault)(at_s=m.time + 0.5))
-    code_, out, err, port = _source_said(model, "on", capsys, inject, *HOLD, "--for", "5")
+    code_, out, err, port = _source_said(model, "on", capsys, _in_the_hold(fault, "SER"), *HOLD, "--for", "5")
     assert code_ == 1 and not model.xray_on, (out, err)
     assert re.fullmatch(HELD.format(port=re.escape(port), s="5"), out[-1]), out  # it came in the hold
     assert err[-1] == (
         f"error: {port}: {cause}; X-rays switched off, confirmed by STS: {state}; controller error code {int(code)}"
     )
+
+
+def _in_the_hold(fault: str, after: str):
+    """An ``inject`` for :func:`_source_said`: the model's ``fault`` (a method name) right after
+    the first ``after`` exchange 0.5 s (wall clock) or more after XON, in the hold's polls."""
+
+    def inject(m):
+        def arm():
+            m.inject_after(after, getattr(m, fault))
+
+        def later():
+            timer = threading.Timer(0.5, arm)
+            timer.daemon = True
+            timer.start()
+
+        m.inject_after("XON", later)
+
+    return inject
+
+
+def test_an_overload_between_b_state_and_current_readings_is_named_with_what_the_poll_saw(fast, capsys):
+    """B reads the state (STS), then kV (SHV) and µA (SCU) in separate exchanges: an overload
+    after a poll's STS read X-rays on is seen as the current dropped, and named an overload by
+    the STS after the XOF, with that reading kept -- the wording the hold's test met once under
+    load, made certain here (the fault right after the poll's STS). Exit 1, tube off confirmed."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    code_, out, err, port = _source_said(model, "on", capsys, _in_the_hold("overload", "STS"), *HOLD, "--for", "5")
+    assert code_ == 1 and not model.xray_on, (out, err)
+    assert re.fullmatch(HELD.format(port=re.escape(port), s="5"), out[-1]), out
+    assert err[-1] == (
+        f"error: {port}: overload (beam dropped: measured current 0 µA, below 50% of the set 250 µA); "
+        f"X-rays switched off, confirmed by STS: OVERLOAD; controller error code {int(ErrorCode.OVERLOAD)}"
+    ), err
 
 
 @pytest.mark.parametrize("sig, stuck", [("SIGINT", False), ("SIGTERM", False), ("SIGTERM", True)])

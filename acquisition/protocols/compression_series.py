@@ -1846,6 +1846,8 @@ def _stop(r: _Run, exc: BaseException):
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
     _beam_fault_not_stopped_on(monitor, exc)
+    if unvouched and res.tube_off and _only_cut_short(monitor.error):
+        _error_code_after_stop(monitor)
     _stop_frame(r)
     if res.tube_off is None:
         _off_where_the_guardian_left(exc)
@@ -1896,6 +1898,29 @@ def _stop(r: _Run, exc: BaseException):
     if hasattr(exc, "add_note"):
         exc.add_note(_stop_note(r, what, tube, kept))
     return exc
+
+
+def _only_cut_short(error) -> bool:
+    """Whether the beam monitor saw no fault: none, or its poll in flight cut short by the stop's
+    own switch-off (:class:`~acquisition.l8121.SwitchedOff`, which vouches for nothing)."""
+    from acquisition.l8121 import SwitchedOff
+
+    return error is None or isinstance(error, SwitchedOff)
+
+
+def _error_code_after_stop(monitor) -> None:
+    """A beam period stopped before its end (a signal, the disk, the detector), the tube confirmed
+    off: ``SER`` read once, as a period's normal end reads it after its ``XOF``
+    (:meth:`_BeamMonitor.confirm_error_code`). Read at most every ``error_poll_s`` (up to 60 s)
+    with the beam on, it had vouched for nothing since its last read, and a stop labels invalid only
+    the frames since the last good poll: a controller code that came up meanwhile left the rest
+    valid, and a stop after a series' last frame was said complete (review s50rv2). A code not
+    allowed, or no reading, moves the vouching back to the last good read (those frames are then
+    labelled invalid) and is said; the stop remains what the run raises."""
+    try:
+        monitor.confirm_error_code()
+    except Exception as exc:  # (recorded as the monitor's error: the frames since are labelled invalid)
+        log.warning("%s; the frames taken since its last good read are labelled invalid", exc)
 
 
 def _beam_fault_not_stopped_on(monitor, exc: BaseException) -> None:
