@@ -80,6 +80,7 @@ False
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -1498,7 +1499,9 @@ class L8121:
     The transport serialises exchanges, so :meth:`off` may be called from another thread (a
     watchdog) at any time, also while :meth:`on` waits for a stable beam. Its ``XOF`` goes right
     after the exchange on the link, before any other thread's next query (the rest of a
-    :meth:`check` in flight is not sent: :class:`SwitchedOff`).
+    :meth:`check` in flight is not sent: :class:`SwitchedOff`). Other threads' exchanges take the
+    link in the order they asked for it, so a thread polling back to back delays another's
+    :meth:`set_values` (or :meth:`on`) by at most one exchange per exchange.
     """
 
     def __init__(
@@ -1560,6 +1563,12 @@ class L8121:
         # repetition its time-outs before the operator hears anything).
         self._turns = threading.Condition()
         self._busy = False
+        # The threads waiting for the link, in the order they asked: it goes to the first (a switch-off's
+        # thread excepted: before all). Without the order, a thread polling back to back (a user's
+        # status loop, a beam monitor with no period) gave the link up and took it again before
+        # the waiting thread had woken, and set_values() waited as long as the loop ran (seconds,
+        # unbounded, in both dialects: benchmarks/bench_l8121_starve.py)
+        self._queue: collections.deque = collections.deque()
         self._off_thread: int | None = None
         self._off_running = False
         self._off_state: SourceState | None = None
@@ -2245,8 +2254,17 @@ class L8121:
         that met a silent controller, other threads' exchanges are not sent (each would wait out
         its time-out again before the run can report)."""
         with self._turns:
-            while self._busy or self._off_thread not in (None, me):
-                self._turns.wait()
+            ticket = object()
+            self._queue.append(ticket)
+            try:
+                # the switch-off's own exchanges go before every queued one; the others in turn
+                while self._busy or (
+                    self._off_thread != me and (self._off_thread is not None or self._queue[0] is not ticket)
+                ):
+                    self._turns.wait()
+            finally:
+                self._queue.remove(ticket)  # taken, refused below, or interrupted: the next one's turn
+                self._turns.notify_all()
             if (
                 self._off_thread != me
                 and self.off_failed is not None
