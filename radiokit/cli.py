@@ -678,27 +678,20 @@ def _calibration_from_files(args, th):
     # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
     said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}
     said = {k: opt if hints[k].get("dataset") else None for k, opt in said.items()}  # else the file's own layout
-    darks = _stack(
-        args.dark,
-        hints["dark"] | {"option": said["dark"]},
-        2,
-        _progress(args),
-        origins["dark"],
-        bits,
-        layouts,
-        scalings,
-        inputs,
-    )
-    flats = _stack(
-        args.flat,
-        hints["flat"] | {"option": said["flat"]},
-        1,
-        _progress(args),
-        origins["flat"],
-        bits,
-        layouts,
-        scalings,
-        inputs,
+    files, image_key = {"dark": args.dark, "flat": args.flat}, {"dark": 2, "flat": 1}  # NXtomo's keys
+    darks, flats = (
+        _stack(
+            files[k],
+            hints[k] | {"option": said[k]},
+            image_key[k],
+            _progress(args),
+            origins[k],
+            bits,
+            layouts,
+            scalings,
+            inputs,
+        )
+        for k in ("dark", "flat")
     )
     declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
     if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
