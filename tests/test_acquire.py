@@ -570,6 +570,17 @@ def test_a_controller_error_mid_step_stops_the_series_keeping_its_frames(tmp_pat
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]
 
 
+def _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench):
+    """A dark, a flat and one step of 3 frames, its devices, with ``error_poll_s`` at its most:
+    no SER with the beam on, so the gap after the last read is deterministic (the series' beam
+    periods last seconds)."""
+    from acquisition.l8121 import ERROR_POLL_MAX_S
+
+    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
+    return p, sim_devices(p, bench=bench)
+
+
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path, scene_toml, bench, dialect):
     """SER is read at most every ERROR_POLL_S: a code that comes up after the last read of a beam
@@ -577,12 +588,7 @@ def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path
     skips SER within the interval, and after the series' last period nobody reads it again). The
     driver reads SER once the tube is off (XOF is not delayed by it): a code not allowed stops the
     series and labels the frames since the last good SER invalid (review s47rv4)."""
-    from acquisition.l8121 import ERROR_POLL_MAX_S
-
-    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
-    # no SER with the beam on: the gap, deterministic (the series' beam periods last seconds)
-    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
-    dev = sim_devices(p, bench=bench)
+    p, dev = _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench)
     model = dev.emulator
     seen = {"frames": 0}
 
@@ -621,11 +627,8 @@ def test_a_stop_in_a_beam_period_reads_the_error_code_once_the_tube_is_off(tmp_p
     followed by one SER read too: the code labels the frames since the last good SER invalid, and
     the stop is still what the run raises (review s50rv2)."""
     from acquisition.guardian import StopSignal
-    from acquisition.l8121 import ERROR_POLL_MAX_S
 
-    p = protocol(tmp_path, scene_toml, dialect, darks=1, flats=1, frames_per_step=3, steps=[0.15])
-    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S  # no SER with the beam on: the gap, deterministic
-    dev = sim_devices(p, bench=bench)
+    p, dev = _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench)
     model = dev.emulator
     seen = {"frames": 0}
 

@@ -32,6 +32,18 @@ def _write_h5(path, name, data):
     return path
 
 
+def _strip_experiment(path, n, rng):
+    """An experiment file of ``n`` frames of 200 x 8 (a narrow strip of a panel), written frame by
+    frame: 5 darks at 100 counts, 10 flats at 3000, the rest projections at 1500, noise 10 (drawn
+    from ``rng``)."""
+    with ExperimentWriter(path, shape=(200, 8)) as w:
+        for i in range(n):
+            key = ImageKey.DARK if i < 5 else ImageKey.FLAT if i < 15 else ImageKey.PROJECTION
+            level = {ImageKey.DARK: 100, ImageKey.FLAT: 3000, ImageKey.PROJECTION: 1500}[key]
+            w.append(rng.normal(level, 10, (200, 8)).round().astype(np.uint16), image_key=key)
+    return path
+
+
 def _mtime_utc(path) -> datetime:
     return datetime.fromtimestamp(os.stat(path).st_mtime, UTC).replace(microsecond=0)
 
@@ -183,12 +195,7 @@ def test_an_experiment_file_of_narrow_frames_is_read_as_written(tmp_path):
     (``correct exp.h5 --narrow-frames`` was refused too: the calibration from its darks and flats
     read it without the flag). On main it read, with a warning; it reads as written again."""
     rng = np.random.default_rng(7)
-    path = tmp_path / "strip.h5"
-    with ExperimentWriter(path, shape=(200, 8)) as w:
-        for i in range(70):
-            key = ImageKey.DARK if i < 5 else ImageKey.FLAT if i < 15 else ImageKey.PROJECTION
-            level = {ImageKey.DARK: 100, ImageKey.FLAT: 3000, ImageKey.PROJECTION: 1500}[key]
-            w.append(rng.normal(level, 10, (200, 8)).round().astype(np.uint16), image_key=key)
+    path = _strip_experiment(tmp_path / "strip.h5", 70, rng)
     res = run_cli("info", "--json", path)
     assert res.returncode == 0, res.stderr
     assert (json.loads(res.stdout)[0]["frames"], json.loads(res.stdout)[0]["shape"]) == (70, [200, 8])
@@ -208,12 +215,7 @@ def test_a_stack_its_writer_declared_frames_first_is_read_so(tmp_path):
     one image), as every radiokit writer's and other NeXus writers' do: a declaration, like a
     tifffile description's axes, read as stated. Without it the same stack is refused."""
     rng = np.random.default_rng(8)
-    path = tmp_path / "strip.h5"
-    with ExperimentWriter(path, shape=(200, 8)) as w:
-        for i in range(90):
-            key = ImageKey.DARK if i < 5 else ImageKey.FLAT if i < 15 else ImageKey.PROJECTION
-            level = {ImageKey.DARK: 100, ImageKey.FLAT: 3000, ImageKey.PROJECTION: 1500}[key]
-            w.append(rng.normal(level, 10, (200, 8)).round().astype(np.uint16), image_key=key)
+    path = _strip_experiment(tmp_path / "strip.h5", 90, rng)
     res = run_cli("correct", path, "-o", tmp_path / "t.h5", "--domain", "linear", "-q")
     assert res.returncode == 0, res.stderr
     res = run_cli("info", "--json", tmp_path / "t.h5")
