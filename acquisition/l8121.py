@@ -1562,7 +1562,13 @@ class L8121:
         # waits for its outcome instead of repeating it (a silent controller would cost each
         # repetition its time-outs before the operator hears anything).
         self._turns = threading.Condition()
-        self._busy = False
+        # The thread whose exchange holds the link (None: free). A thread runs one exchange at a
+        # time, so the link (or a place in the queue) still held by the thread asking again was
+        # left by an exception between taking it and the exchange's ``finally`` -- a signal's stop
+        # is raised at any bytecode of the main thread -- and is free to it: before, the stop's
+        # own switch-off then waited for it forever without a word (CI, session 50: ``source
+        # warm-up`` on B, SIGTERM; tests/test_l8121_fairness.py, a stop at every line).
+        self._busy: int | None = None
         # The threads waiting for the link, in the order they asked: it goes to the first (a switch-off's
         # thread excepted: before all). Without the order, a thread polling back to back (a user's
         # status loop, a beam monitor with no period) gave the link up and took it again before
@@ -2206,7 +2212,8 @@ class L8121:
             if check is not None and check.reconnects != seen and (self._may_be_on or self._state_unread):
                 self.unit_unverified = True
             with self._turns:
-                self._busy = False
+                if self._busy == me:
+                    self._busy = None
                 self._turns.notify_all()
         if error is not None:
             self._fail_safe(error)
@@ -2254,16 +2261,23 @@ class L8121:
         that met a silent controller, other threads' exchanges are not sent (each would wait out
         its time-out again before the run can report)."""
         with self._turns:
-            ticket = object()
-            self._queue.append(ticket)
+            # this thread's own place or hold left by an exception (see _busy): given up first
+            stale = [t for t in self._queue if t[0] == me]
+            for t in stale:
+                self._queue.remove(t)
+            if self._busy == me:
+                self._busy = None
+            ticket = (me, object())
             try:
+                self._queue.append(ticket)
                 # the switch-off's own exchanges go before every queued one; the others in turn
-                while self._busy or (
+                while self._busy is not None or (
                     self._off_thread != me and (self._off_thread is not None or self._queue[0] is not ticket)
                 ):
                     self._turns.wait()
             finally:
-                self._queue.remove(ticket)  # taken, refused below, or interrupted: the next one's turn
+                if ticket in self._queue:  # taken, refused below, or interrupted: the next one's turn
+                    self._queue.remove(ticket)
                 self._turns.notify_all()
             if (
                 self._off_thread != me
@@ -2277,7 +2291,7 @@ class L8121:
                     f"{self.port}: {line} not sent: X-rays are being switched off (or a stop was asked) "
                     f"during this reading (it cannot vouch for the beam)"
                 )
-            self._busy = True
+            self._busy = me
 
     def _claim_off(self, me: int) -> None:
         """An exchange failed while the beam may be on: this thread will switch off (in

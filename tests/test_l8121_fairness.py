@@ -16,12 +16,17 @@ delay set on the emulator, with a margin per exchange for scheduling.
 from __future__ import annotations
 
 import os
+import signal
+import sys
 import threading
 import time
 
 import pytest
 
+from acquisition import l8121 as driver
+from acquisition import transport
 from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.guardian import StopSignal
 from acquisition.l8121 import L8121, SourceState
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
@@ -146,3 +151,79 @@ def _ignore(call, *args):
         call(*args)
     except Exception:  # the setting meets the switch-off (SwitchedOff, a dropped beam): not this test's
         pass
+
+
+def _raise_at_line(k: int, filename: str):
+    """A trace function raising :class:`StopSignal` at the ``k``-th line run in ``filename``: a
+    signal's handler raises at any bytecode of the main thread, and a real signal cannot be aimed
+    at one (this is the fault injected by hand, one line at a time)."""
+    seen = {"n": 0}
+
+    def local(frame, event, arg):
+        if event == "line":
+            seen["n"] += 1
+            if seen["n"] == k:
+                raise StopSignal(signal.SIGTERM)
+        return local
+
+    def tracer(frame, event, arg):
+        # the driver's own frames, not its callbacks run inside the transport's read (reply_fits):
+        # a stop there, once the reply is read, costs the switch-off that reply's time-out (the
+        # transport waits for the reply it cannot know was read), a delay, not a lock
+        if frame.f_code.co_filename != filename:
+            return None
+        caller = frame.f_back
+        while caller is not None:
+            if caller.f_code.co_filename == transport.__file__:
+                return None
+            caller = caller.f_back
+        return local
+
+    return tracer, seen
+
+
+def test_a_stop_at_any_line_of_an_exchange_leaves_the_link_to_the_switch_off(dialect):
+    """A signal's stop may land on any line of a reading, including between the thread taking the
+    link and the exchange's ``try`` that gives it back. The switch-off that follows, in the same
+    thread, must still go out and confirm. Before: a stop right after the link was taken left it
+    taken, and ``off()`` waited for it forever without a word (CI: ``source warm-up`` on B,
+    SIGTERM, hung until the guardian switched the tube off; 128 + 15 never came)."""
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, poll_s=0.05, min_interval_s=0.0) as src:
+        _stop_at_every_line(src, model)
+
+
+def _stop_at_every_line(src, model):
+    failures = []
+
+    def stop_everywhere():
+        k = 0
+        while True:
+            k += 1
+            tracer, seen = _raise_at_line(k, driver.__file__)
+            sys.settrace(tracer)
+            try:
+                src.status()
+            except StopSignal:
+                pass
+            finally:
+                sys.settrace(None)
+            if seen["n"] < k:  # the reading ended before line k: every line has been tried
+                return k
+            n0 = len(model.log)
+            try:
+                state = src.off()
+            except Exception as exc:  # recorded: the assertion names it
+                failures.append((k, repr(exc)))
+                continue
+            sent = [e.command for e in model.log[n0:]]
+            if state != SourceState.STANDBY or "XOF" not in sent:
+                failures.append((k, state, sent))
+
+    result = {}
+    worker = threading.Thread(target=lambda: result.setdefault("lines", stop_everywhere()), daemon=True)
+    worker.start()
+    worker.join(timeout=30)  # each line: a reading cut short and a switch-off, ~0.1 s
+    assert not worker.is_alive(), "off() never returned after a stop inside a reading"
+    assert result["lines"] > 10, result  # the reading ran through the driver's lines
+    assert not failures, failures[:5]
