@@ -1020,12 +1020,14 @@ def _json_attr(path, group, name) -> dict:
     """A JSON object stored as the text attribute ``name`` (``{}`` when absent)."""
     raw = group.attrs.get(name, "{}")
     try:
-        value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
-    except (TypeError, ValueError, RecursionError) as exc:
+        # refused past radiokit's depth, which is walked again by recursion (s51); the nulled
+        # non-finite numbers put back (radiokit._json)
+        value = strict_json.loads_record(raw.decode() if isinstance(raw, bytes) else raw, f"{group.name}@{name}")
+    except (TypeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
-    try:  # the non-finite numbers the writer nulled (radiokit._json)
-        value = strict_json.restore(value, f"{group.name}@{name}")
-    except ValueError as exc:
+    except strict_json.TooDeep as exc:  # not radiokit's record: its maker can say nothing of it
+        raise FormatError(path, f"{exc}: make the calibration again (radiokit calibrate)") from None
+    except ValueError as exc:  # a not_finite map naming no null
         raise FormatError(path, str(exc)) from None
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")

@@ -194,7 +194,8 @@ def _calibration_summary(meta: dict) -> dict:
 
     prov = meta.get("provenance", {})
     out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), prov)
-    return out | {"made from": input_lines(prov)}
+    unreadable = meta.get("provenance_unreadable")  # (its frames read: info describes the file)
+    return out | {"made from": [f"unreadable: {unreadable}"] if unreadable else input_lines(prov)}
 
 
 #: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
