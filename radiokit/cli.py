@@ -400,11 +400,13 @@ _MOST_LINES = 10
 def _print_lines(key: str, lines: list) -> None:
     """``info``'s item ``key`` of several ``lines``, one a line under it: a calibration made from
     300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
-    shown = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
-    for k, line in enumerate(shown):
-        print(f"  {key if k == 0 else '':<10} {_escaped(line)}")
-    if len(shown) < len(lines):
-        print(f"  {'':<10} ... and {len(lines) - len(shown)} more (radiokit info --json lists them all)")
+    # (as radiokit.calibrate.input_lines wrote them: their names as names print, no _escaped, which
+    # printed a name's byte that is not UTF-8 as \udce9)
+    first = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
+    for k, line in enumerate(first):
+        print(f"  {key if k == 0 else '':<10} {line}")
+    if len(first) < len(lines):
+        print(f"  {'':<10} ... and {len(lines) - len(first)} more (radiokit info --json lists them all)")
 
 
 # -- calibrate ---------------------------------------------------------------------------------

@@ -313,6 +313,26 @@ def test_a_name_with_a_control_character_is_printed_quoted_and_escaped(tmp_path)
     one_line_error(res, "radiokit correct: cal.h5: no such file")
 
 
+def test_made_from_names_print_as_every_other_name(tmp_path):
+    """s51: ``info``'s "made from" lines escaped a name's newline but did not quote it as every
+    other name printed is (radiokit._names.shown), and printed a name's byte that is not UTF-8 as
+    ``\\udce9`` where every other line prints ``\\xe9``. Both as the file's own line prints them."""
+    darks, flats = _darks_flats()
+    latin = os.fsdecode(b"caf\xe9.tif")  # a Latin-1 name: its byte 0xe9 is no UTF-8
+    tifffile.imwrite(tmp_path / "d\nx.tif", darks, photometric="minisblack")
+    tifffile.imwrite(tmp_path / latin, flats, photometric="minisblack")
+    res = run_cli("calibrate", "--dark", "d\nx.tif", "--flat", latin, "-o", "cal.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    res = run_cli("info", tmp_path / latin, tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert f"{tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout  # the file's own line, as it prints names
+    assert "made from  'd\\nx.tif': tiff, 5 darks;" in res.stdout, res.stdout
+    assert f"; '{tmp_path}/d\\nx.tif'\n" in res.stdout, res.stdout  # resolved, quoted alike
+    assert "\n             caf\\xe9.tif: tiff, 5 flats;" in res.stdout, res.stdout
+    assert f"; {tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout
+    assert "udce9" not in res.stdout, res.stdout
+
+
 # ------------------------------------------------------------------------------------------------
 # 5. an 8-bit and a 16-bit copy of one image registered
 # ------------------------------------------------------------------------------------------------
