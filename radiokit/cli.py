@@ -47,7 +47,7 @@ def _inputs(args, paths) -> list:
 
 def _raw_hints(args) -> dict:
     hints = {}
-    for name in ("preset", "dtype", "byteorder", "offset", "format", "dataset"):
+    for name in ("preset", "dtype", "byteorder", "offset", "format"):  # a dataset: _dataset_hints
         value = getattr(args, name, None)
         if value is not None:
             hints[name] = value
@@ -67,23 +67,53 @@ _NARROW_HELP = (
 )
 
 
-def _dataset_for_hdf5(hints: dict, paths) -> dict:
-    """``hints`` with ``--dataset`` applied to the HDF5 files among ``paths`` only, their TIFFs
-    (raw, ITEX) reading as ever (the reader's ``hdf5_dataset``). Why: ``info`` and ``correct`` of
-    TIFF and HDF5 files together refused ``--dataset`` for the TIFF, so no one command read them
-    (s50). Where none of them is HDF5 it stays ``dataset``, which the reader refuses naming the
-    file: an option that applies to nothing given is a mistake to say, not to drop."""
+#: the rule of every option naming a dataset, as the commands' help says it
+_DATASET_RULE = (
+    "A dataset option applies to the HDF5 files among the files it covers; the others (TIFF, raw, ITEX) are "
+    "read as they are, and it is refused where none of them is HDF5."
+)
+
+
+def _dataset_hints(args, kinds: dict) -> dict:
+    """The reader's dataset hints for each kind of file a command reads (``kinds``: kind -> its
+    files, e.g. ``{"dark": [...], "flat": [...]}``): the kind's own option (``--dark-dataset``,
+    ``--fixed-dataset``) over ``--dataset``, which covers the kinds without one.
+
+    One rule for every such option and command: the dataset applies to the HDF5 files among
+    those the option covers (the reader's ``hdf5_dataset``), their TIFF, raw and ITEX files read
+    as they are; refused, naming the option and a file, where none of them is HDF5 (an option
+    that applies to nothing given is a slip to say, not to drop). Why: ``info`` and ``correct``
+    applied ``--dataset`` so (s50) while ``calibrate`` and ``register`` refused a TIFF beside it,
+    and each of their per-kind options did too (s51)."""
+    own = {kind: getattr(args, f"{kind}_dataset", None) for kind in kinds}
+    shared = [p for kind, paths in kinds.items() if not own[kind] for p in paths]
+    fmt = getattr(args, "format", None)  # --format: every file read as that
+    both = _over_hdf5_files("--dataset", getattr(args, "dataset", None), shared, fmt)
+    return {
+        kind: _over_hdf5_files(f"--{kind}-dataset", own[kind], paths, fmt) if own[kind] else both
+        for kind, paths in kinds.items()
+    }
+
+
+def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
+    """``dataset`` (given by ``option``) for the HDF5 files among ``paths``, by the rule of
+    :func:`_dataset_hints`: ``{"hdf5_dataset": dataset}``, or ``{}`` where none is given."""
     from radiokit.io import FormatError, sniff
 
-    def hdf5(path) -> bool:
+    if not dataset or not paths:
+        return {}
+    found = []
+    for path in paths:
         try:
-            return sniff(path) == "hdf5"
+            found.append((path, fmt or sniff(path)))
         except (OSError, FormatError):  # a missing or unreadable file is named by its reader
-            return False
-
-    if not hints.get("dataset") or not any(hdf5(p) for p in paths):
-        return hints
-    return {k: v for k, v in hints.items() if k != "dataset"} | {"hdf5_dataset": hints["dataset"]}
+            return {"hdf5_dataset": dataset}
+    if not any(f == "hdf5" for _, f in found):
+        path, f = found[0]
+        what = {"tiff": "a TIFF", "itex": "an ITEX .img", "raw": "headerless raw"}.get(f, f)
+        others = ", nor is any other file it applies to" if len(found) > 1 else ""
+        raise FormatError(path, f"{option} names a dataset of HDF5 files, and this file is {what}, not HDF5{others}")
+    return {"hdf5_dataset": dataset}
 
 
 def _add_raw_hints(p):
@@ -98,7 +128,7 @@ def _add_raw_hints(p):
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
-    g = p.add_argument_group("HDF5 files of other layouts")
+    g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
         "--allow-external",
@@ -339,7 +369,7 @@ def cmd_info(args) -> int:
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
     # JSON has an entry per file given, a bad one's {"file", "error"}, so that its reader sees it too
-    hints = _dataset_for_hdf5(_raw_hints(args), args.files)
+    hints = _raw_hints(args) | _dataset_hints(args, {"files": args.files})["files"]
     for path in args.files:
         try:
             with open_frames(path, **hints) as src:
@@ -632,41 +662,9 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def _kind_hints(args, kind: str) -> dict:
-    """``--dark-dataset`` / ``--flat-dataset`` over ``--dataset`` for one kind's files. Why: one
-    dataset for both could not calibrate TIFF darks beside NeXus HDF5 flats (the TIFF refused
-    it), nor two HDF5 files of different layouts (s49off), as register's --fixed-dataset."""
-    hints, own = _raw_hints(args), getattr(args, f"{kind}_dataset", None)
-    if own:
-        _hdf5_only(getattr(args, kind), f"--{kind}-dataset names the dataset of the {kind} files, and this one is {{}}")
-        return hints | {"dataset": own}
-    if hints.get("dataset"):
-        _hdf5_only(
-            getattr(args, kind),
-            f"--dataset names the dataset of the darks and flats both, and this {kind} file is {{}}: "
-            "name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
-        )
-    return hints
-
-
-def _hdf5_only(paths, text: str) -> None:
-    """Refuse the first of ``paths`` that is not HDF5, in one line naming the option that gave it a
-    dataset (``text``, its ``{}`` the file's format): the reader's own line says "dataset=
-    (--dataset)", which is not what was given for one kind's files (review s49rv)."""
-    from radiokit.io import FormatError, sniff
-
-    for path in paths:
-        try:
-            fmt = sniff(path)
-        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
-            continue
-        if fmt != "hdf5":
-            raise FormatError(path, text.format(f"{fmt}, not HDF5"))
-
-
 def _calibration_from_files(args, th):
     """The calibration from ``--dark`` and ``--flat`` frame files, each kind read with its own
-    hints (:func:`_kind_hints`)."""
+    hints (:func:`_dataset_hints`)."""
     from radiokit.calibrate import Calibration, FrameLevelError
     from radiokit.io import FormatError
 
@@ -675,12 +673,15 @@ def _calibration_from_files(args, th):
     # experiment-style file holds darks and flats, told apart by image_key
     _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
     _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-    hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
+    # --dark-dataset / --flat-dataset over --dataset: one dataset for both could not read two
+    # HDF5 files of different layouts (s49off)
+    datasets = _dataset_hints(args, {"dark": args.dark, "flat": args.flat})
+    hints = {kind: _raw_hints(args) | datasets[kind] for kind in ("dark", "flat")}
     origins, bits, layouts, scalings, inputs = {"dark": [], "flat": []}, {}, {}, {}, {}
     _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
     # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
     said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}
-    said = {k: opt if hints[k].get("dataset") else None for k, opt in said.items()}  # else the file's own layout
+    said = {k: opt if datasets[k] else None for k, opt in said.items()}  # else the file's own layout
     files, image_key = {"dark": args.dark, "flat": args.flat}, {"dark": 2, "flat": 1}  # NXtomo's keys
     darks, flats = (
         _stack(
@@ -744,10 +745,11 @@ def cmd_correct(args) -> int:
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{shown(args.output)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
+    hints = _raw_hints(args) | _dataset_hints(args, {"frames": args.frames})["frames"]  # refused before the work
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
-        _an_experiment(args.frames[0], _raw_hints(args))
+        _an_experiment(args.frames[0], hints)
         cal = Calibration.from_experiment(
             args.frames[0], allow_external=args.allow_external, narrow_frames=args.narrow_frames
         )
@@ -761,7 +763,7 @@ def cmd_correct(args) -> int:
         domain=args.domain,
         progress=_progress(args),
         overwrite=args.overwrite,
-        **_dataset_for_hdf5(_raw_hints(args), args.frames),
+        **hints,
     )
     print(
         f"{summary['frames']} frame(s) -> {shown(summary['output'])} ({summary['domain']}) "
@@ -782,12 +784,13 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame", narrow_frames=False):
-    """Frame ``index`` of ``path`` as float32, the index counted from the start (-1 is the last
-    frame: the same-image check compares frames, not how they were written), and the file's metadata."""
+def _one_image(path, index, hints, allow_external=False, option="--fixed-frame", narrow_frames=False):
+    """Frame ``index`` of ``path`` (read with the reader's ``hints``: its dataset's) as float32, the
+    index counted from the start (-1 is the last frame: the same-image check compares frames, not
+    how they were written), and the file's metadata."""
     from radiokit.io import open_frames
 
-    hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
+    hints = dict(hints) | ({"allow_external": True} if allow_external else {})
     hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
@@ -907,10 +910,12 @@ def _register_inputs(args):
     pixel sizes)."""
     from radiokit.io import check_output, check_same_pixel_size
 
+    # --fixed-dataset / --moving-dataset over --dataset: two HDF5 files of different layouts (s38a)
+    datasets = _dataset_hints(args, {"fixed": [args.fixed], "moving": [args.moving]})
     fixed, fixed_frame, fixed_meta = _one_image(
         args.fixed,
         args.fixed_frame,
-        args.fixed_dataset or args.dataset,
+        datasets["fixed"],
         args.allow_external,
         "--fixed-frame",
         args.narrow_frames,
@@ -918,7 +923,7 @@ def _register_inputs(args):
     moving, moving_frame, moving_meta = _one_image(
         args.moving,
         args.moving_frame,
-        args.moving_dataset or args.dataset,
+        datasets["moving"],
         args.allow_external,
         "--moving-frame",
         args.narrow_frames,
@@ -1556,7 +1561,7 @@ def _add_calibrate(sub):
     )
     _add_raw_hints(p)
     g = next(g for g in p._action_groups if g.title == "HDF5 files of other layouts")
-    # one --dataset for both kinds could not read TIFF darks beside NeXus HDF5 flats (s49off)
+    # one --dataset for both kinds could not read two HDF5 files of different layouts (s49off)
     g.add_argument("--dark-dataset", help="the dark files' HDF5 dataset (instead of --dataset for them)")
     g.add_argument("--flat-dataset", help="the flat files' HDF5 dataset (instead of --dataset for them)")
     p.set_defaults(func=cmd_calibrate)
@@ -1621,15 +1626,15 @@ def _add_register_inputs(p):
         default=0,
         help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
     )
-    p.add_argument(
+    g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
+    g.add_argument(
         "--dataset",
         help="HDF5 dataset holding the frames of both images (e.g. entry/data/data of `radiokit correct`); "
         "--fixed-dataset / --moving-dataset name one image's",
     )
-    # one --dataset for both: a TIFF beside an HDF5 file of another layout, or two HDF5 files of
-    # different layouts, could not be registered at all (the TIFF refuses a dataset)
-    p.add_argument("--fixed-dataset", help="the fixed image's HDF5 dataset (instead of --dataset for it)")
-    p.add_argument("--moving-dataset", help="the moving image's HDF5 dataset (instead of --dataset for it)")
+    # one --dataset for both: two HDF5 files of different layouts could not be registered at all
+    g.add_argument("--fixed-dataset", help="the fixed image's HDF5 dataset (instead of --dataset for it)")
+    g.add_argument("--moving-dataset", help="the moving image's HDF5 dataset (instead of --dataset for it)")
     p.add_argument(
         "--allow-external",
         action="store_true",

@@ -285,6 +285,64 @@ def test_dataset_applies_to_the_hdf5_files_among_tiffs_in_info_and_correct(tmp_p
     one_line_error(res, "b.tif", "--dataset", "HDF5")
 
 
+def test_dataset_is_one_rule_in_calibrate_and_register_too(tmp_path):
+    """s51: ``info`` and ``correct`` applied ``--dataset`` to the HDF5 files among TIFFs (s50), but
+    ``calibrate`` and ``register`` still refused the TIFF. One rule for every option naming a
+    dataset (--dataset, --dark-dataset, --fixed-dataset, ...): it applies to the HDF5 files among
+    those it covers, the others read as they are; refused, naming the option and a file, only
+    where none of them is HDF5. Every command's help says so."""
+    darks, flats = _darks_flats()
+    tifffile.imwrite(tmp_path / "d.tif", darks, photometric="minisblack")
+    _write_h5(tmp_path / "f.h5", "scan/flat", flats)
+    res = run_cli(
+        "calibrate", "--dark", "d.tif", "--flat", "f.h5", "--dataset", "scan/flat", "-o", "c.h5", "-q", cwd=tmp_path
+    )
+    assert res.returncode == 0, res.stderr
+    # c, the mean of flat - dark over the panel: both kinds read (noise 20 / sqrt(5 * 48 * 64))
+    assert abs(Calibration.load(tmp_path / "c.h5").c - (flats.mean() - darks.mean())) < 1
+    got = [(i["path"], i["dataset"], i["option"]) for i in Calibration.load(tmp_path / "c.h5").provenance["inputs"]]
+    assert got == [("d.tif", None, None), ("f.h5", "scan/flat", "--dataset")]
+    # one kind's option over that kind's files alike: TIFF flats beside HDF5 flats
+    tifffile.imwrite(tmp_path / "f.tif", flats[:2], photometric="minisblack")
+    _write_h5(tmp_path / "f3.h5", "scan/flat", flats[2:])
+    args = ["--dark", "d.tif", "--flat", "f.tif", "f3.h5", "--flat-dataset", "scan/flat", "-o", "c2.h5", "-q"]
+    assert run_cli("calibrate", *args, cwd=tmp_path).returncode == 0
+    assert Calibration.load(tmp_path / "c2.h5").provenance["n_flats"] == 5
+    image = np.random.default_rng(3).normal(1000, 50, (40, 40)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "fixed.tif", image)
+    _write_h5(tmp_path / "moving.h5", "scan/frames", image[None])
+    res = run_cli(
+        "register",
+        "fixed.tif",
+        "moving.h5",
+        "--dataset",
+        "scan/frames",
+        "--method",
+        "ncc",
+        "-o",
+        "r.h5",
+        "-q",
+        cwd=tmp_path,
+    )
+    assert res.returncode in (0, 1) and (tmp_path / "r.h5").is_file(), res.stderr
+    # applied to nothing: refused, naming the option and the file, before any work
+    for command, extra in (
+        ("calibrate", ("--dark", "d.tif", "--flat", "f.tif", "--dataset", "x", "-o", "refused1.h5")),
+        ("calibrate", ("--dark", "d.tif", "--flat", "f.h5", "--dark-dataset", "x", "-o", "refused1.h5")),
+        ("register", ("d.tif", "fixed.tif", "--dataset", "x", "-o", "refused2.h5")),
+        ("register", ("fixed.tif", "moving.h5", "--fixed-dataset", "x", "-o", "refused2.h5")),
+        ("info", ("d.tif", "--dataset", "x")),
+        ("correct", ("d.tif", "--cal", "c.h5", "--dataset", "x", "-o", "refused3.h5")),
+    ):
+        option = next(a for a in extra if a.endswith("dataset"))
+        line = one_line_error(run_cli(command, *extra, cwd=tmp_path), option, "HDF5")
+        assert "d.tif" in line or "fixed.tif" in line, line
+        assert not list(tmp_path.glob("refused*"))
+    for command in ("info", "correct", "calibrate", "register"):
+        helps = " ".join(run_cli(command, "--help").stdout.split())
+        assert "the HDF5 files among" in helps and "read as they are" in helps, (command, helps)
+
+
 # ------------------------------------------------------------------------------------------------
 # 4. names holding control characters
 # ------------------------------------------------------------------------------------------------
