@@ -378,13 +378,13 @@ def cmd_info(args) -> int:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
                 raise
             failed += 1
-            line = _error_line("info", exc)
+            line = _error_line("info", exc, _given_names(args))
             print(line, file=sys.stderr)
             reports.append({"file": str(path), "error": line.removeprefix("radiokit info: ")})
             continue
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
-            reports[-1]["error"] = f"{path}: no frames"
+            reports[-1]["error"] = f"{shown(path)}: no frames"
             print(f"radiokit info: {shown(path)}: no frames", file=sys.stderr)
     status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
@@ -521,7 +521,7 @@ def _odd_shapes(shapes) -> list:
     first = next(path for path, shape in shapes if shape == panel)
     others = f" and {counts[panel] - 1} other file{'s' * (counts[panel] > 2)}" if counts[panel] > 1 else ""
     return [
-        FormatError(path, f"frames are {shape}, those of {first}{others} {panel}")
+        FormatError(path, f"frames are {shape}, those of {shown(first)}{others} {panel}")
         for path, shape in shapes
         if shape != panel
     ]
@@ -562,7 +562,7 @@ def _stack(
                     raise FormatError(p, "no frames")
                 first = first or (p, src.frame_shape)
                 if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
-                    raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
+                    raise FormatError(p, f"frames are {src.frame_shape}, those of {shown(first[0])} {first[1]}")
                 total += len(src) * src.frame_bytes
                 if bit_depths is not None:
                     bit_depths[str(p)] = src.meta.get("bit_depth")
@@ -570,7 +570,7 @@ def _stack(
                     scalings[str(p)] = value_scaling(src.meta)
                 if layouts is not None:
                     layouts[str(p)] = pixel_layout(src.meta)
-                check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
+                check_budget(p, total, f"the frames of {', '.join(map(shown, paths))}")
                 keys = src.meta.get("image_key")
                 # one entry per file and dataset: two datasets of one file (--dark-dataset d --flat-dataset f) are two
                 where = (str(p), src.meta.get("dataset"))
@@ -588,7 +588,7 @@ def _stack(
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:  # every file has frames (above), none of them keyed as wanted
         names = {2: "darks (image_key 2)", 1: "flats (image_key 1)"}.get(key, "frames")
-        raise ValueError(f"{', '.join(map(str, paths))}: no {names} among their frames")
+        raise ValueError(f"{', '.join(map(shown, paths))}: no {names} among their frames")
     return np.stack(frames)
 
 
@@ -700,8 +700,8 @@ def _calibration_from_files(args, th):
     declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
     if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
         raise ValueError(
-            f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
-            f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
+            f"flats {', '.join(map(shown, args.flat))} are {flats.shape[1:]}, "
+            f"darks {', '.join(map(shown, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
         )
     try:
         cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
@@ -710,7 +710,7 @@ def _calibration_from_files(args, th):
         raise FormatError(path, f"frame {index} ({exc})") from exc
     except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
         raise ValueError(
-            f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+            f"darks {', '.join(map(shown, args.dark))}, flats {', '.join(map(shown, args.flat))}: {exc}"
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
@@ -794,7 +794,7 @@ def _one_image(path, index, hints, allow_external=False, option="--fixed-frame",
     hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
-            raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
+            raise ValueError(f"{shown(path)}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
         image, index = src[index], index % len(src)
         meta = src.meta
@@ -803,7 +803,7 @@ def _one_image(path, index, hints, allow_external=False, option="--fixed-frame",
     # (against numpy's float32 the comparison cast top, with an "overflow in cast" warning)
     if top > float(np.finfo(np.float32).max):
         raise ValueError(
-            f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
+            f"{shown(path)}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )
     return np.asarray(image, np.float32), index, meta
 
@@ -818,7 +818,7 @@ def _a_projection(path, keys, index, option) -> None:
     projections = np.flatnonzero(np.asarray(keys) == 0)
     which = f"the first projection is frame {projections[0]}" if projections.size else "the file holds no projection"
     raise ValueError(
-        f"{path}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
+        f"{shown(path)}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
         f"({option} N picks one)"
     )
 
@@ -938,10 +938,14 @@ def _register_inputs(args):
     fixed_ds, moving_ds = (str(m.get("dataset") or "").strip("/") for m in (fixed_meta, moving_meta))
     if fixed_frame == moving_frame and fixed_ds == moving_ds and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
-        same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
+        same = (
+            shown(args.fixed)
+            if str(args.fixed) == str(args.moving)
+            else f"{shown(args.fixed)} and {shown(args.moving)}"
+        )
         same += f", dataset {fixed_ds}" if fixed_ds else ""
         raise ValueError(
-            f"{args.moving}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
+            f"{shown(args.moving)}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
             "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"
         )
     mask = None
@@ -958,13 +962,15 @@ def _register_inputs(args):
             check_output(out, overwrite=args.overwrite, inputs=_inputs(args, [args.fixed, args.moving]))
     _hdf5_name(args.output)
     if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
-        raise ValueError(f"--png {args.png}: the same file as -o")
+        raise ValueError(f"--png {shown(args.png)}: the same file as -o")
     if args.png is not None:  # matplotlib refused it only after the registration and -o were written
         from matplotlib.backend_bases import FigureCanvasBase
 
         kinds = FigureCanvasBase.get_supported_filetypes()
         if args.png.suffix.lower().lstrip(".") not in kinds:
-            raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+            raise ValueError(
+                f"--png {shown(args.png)}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})"
+            )
     _check_register_memory(args, fixed)
     types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored
     return fixed, moving, mask, _types_hint(types, (fixed, moving))
@@ -991,7 +997,7 @@ def _check_register_memory(args, fixed) -> None:
     need, limit = per_pixel * fixed.size, memory_budget()
     if need > limit:
         raise ValueError(
-            f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
+            f"fixed {shown(args.fixed)}, moving {shown(args.moving)}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
             f"{'' if args.method in (None, 'rc') else f'with {args.method} '}"
             f"needs about {human_bytes(need)} ({per_pixel} bytes a pixel), over the memory budget of "
             f"{human_bytes(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
@@ -1020,7 +1026,7 @@ def cmd_register(args) -> int:
                 **with_default_preset(args.method, options),
             )
     except ValueError as exc:  # the library says "fixed" or "moving"; the user wants the file
-        raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
+        raise ValueError(f"fixed {shown(args.fixed)}, moving {shown(args.moving)}: {exc}") from exc
     q = reg.quality
     registered = reg.warp(moving)
     # the preset that made the field (auto's choice and why, what it started from), as
@@ -1296,8 +1302,8 @@ def _refuse_repeats(files, what: str, why: str = "") -> None:
     for i, a in enumerate(files):
         for b in files[:i]:
             if os.path.exists(a) and _same_file(a, b):
-                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
-                raise ValueError(f"{a}: the same {what} given {same}{why}; give each file once")
+                same = "twice" if str(a) == str(b) else f"as {shown(b)} and as {shown(a)}"
+                raise ValueError(f"{shown(a)}: the same {what} given {same}{why}; give each file once")
 
 
 def _check_process_files(args) -> None:
@@ -1310,7 +1316,7 @@ def _check_process_files(args) -> None:
         for f in args.files:
             if _same_file(args.control, f):
                 raise ValueError(
-                    f"--control {args.control}: is the experiment file {f} itself; a control is another "
+                    f"--control {shown(args.control)}: is the experiment file {shown(f)} itself; a control is another "
                     "experiment, its inclusion as soft as the background"
                 )
     if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
@@ -1357,11 +1363,11 @@ def cmd_process(args) -> int:
     missing = []  # every one named, each on its own line (InputErrors), not the first alone
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
-            missing.append(ValueError(f"{f}: is a folder, not an experiment file"))
+            missing.append(ValueError(f"{shown(f)}: is a folder, not an experiment file"))
         elif not (Path(f).exists() or Path(f).is_symlink()):
             # said first: `process runs/*.h5 -o results` with no runs/ said "results: exists"
             where = "--control " if f == args.control else ""
-            missing.append(ValueError(f"{where}{f}: no such experiment file"))
+            missing.append(ValueError(f"{where}{shown(f)}: no such experiment file"))
     if missing:
         from radiokit.errors import InputErrors
 
@@ -1400,11 +1406,11 @@ def cmd_process(args) -> int:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
             text = _process_error(str(exc), args, _reader_advice(exc))
-            if any(str(f) in text for f in inputs):  # named already (the control, say)
+            if any(str(f) in text or shown(f) in text for f in inputs):  # named already (the control, say)
                 if text == str(exc):
                     raise
                 raise ValueError(text) from exc
-            raise ValueError(f"{args.files[0]}: {text}") from exc
+            raise ValueError(f"{shown(args.files[0])}: {text}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
     return _process_many(args, cfg)
@@ -1456,7 +1462,8 @@ def _batch_error(result, args=None) -> str:
     options' names, ``--overwrite`` for the API's ``--overwrite (overwrite=True)``."""
     from radiokit.io import OutputExistsError
 
-    return _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
+    text = _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
+    return " ".join(_names_shown(text, _given_names(args) if args else ()).split())  # one line, as _error_line's
 
 
 def _all_ok(record) -> bool:
@@ -2059,11 +2066,12 @@ def _main(argv) -> int:
         return 2
     # `radiokit sim run`, named whole as argparse's own errors and --help name it (not "radiokit sim")
     name = " ".join(filter(None, (args.command, getattr(args, "sim_command", None))))
+    given = _given_names(args)
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {name}: {category.__name__}: {' '.join(str(message).split())}\n"
+            f"radiokit {name}: {category.__name__}: {' '.join(_names_shown(str(message), given).split())}\n"
         )
     _one_warning_per_file()
     _quiet_matplotlib()
@@ -2088,13 +2096,34 @@ def _main(argv) -> int:
             print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
             return exit_status(_interrupted(exc))
         for one in getattr(exc, "errors", None) or [exc]:  # InputErrors: each bad input on its own line
-            print(_error_line(name, one), file=sys.stderr)
+            print(_error_line(name, one, given), file=sys.stderr)
         return 2
 
 
-def _error_line(command: str, exc: BaseException) -> str:
-    """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``."""
-    message = str(exc) or type(exc).__name__
+def _given_names(args) -> list[str]:
+    """The files named on the command line (every path option and argument), as given."""
+    names = []
+    for value in vars(args).values():
+        names += [str(v) for v in (value if isinstance(value, (list, tuple)) else [value]) if isinstance(v, Path)]
+    return names
+
+
+def _names_shown(text: str, names) -> str:
+    """``text`` with each of ``names`` that holds a control character (a newline, an escape) as
+    :func:`radiokit._names.shown` prints it, wherever a message put it raw. Why: a message names a
+    file however its writer chose, and the one line folds a raw newline into a space, ``a b.tif``,
+    naming no file (s51); the command line's own messages use ``shown``, and this holds the rule
+    for every other line a command prints of its files (the library's errors and warnings).
+    Longest first: a name inside a longer one is not split (the quoted form holds no raw control)."""
+    for name in sorted({n for n in names if shown(n) != n}, key=len, reverse=True):
+        text = text.replace(name, shown(name))
+    return text
+
+
+def _error_line(command: str, exc: BaseException, names=()) -> str:
+    """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``, the
+    files given (``names``: :func:`_given_names`) as names print."""
+    message = _names_shown(str(exc) or type(exc).__name__, names)
     # the API's words name its keyword too; at the shell only the option means anything
     from radiokit.io import OutputExistsError
 

@@ -10,6 +10,7 @@ from datetime import UTC, datetime
 
 import h5py
 import numpy as np
+import pytest
 import tifffile
 from conftest import one_line_error, run_cli
 
@@ -389,6 +390,64 @@ def test_made_from_names_print_as_every_other_name(tmp_path):
     assert "\n             caf\\xe9.tif: tiff, 5 flats;" in res.stdout, res.stdout
     assert f"; {tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout
     assert "udce9" not in res.stdout, res.stdout
+
+
+NL = "a\nb.tif"  # a name holding a newline
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("correct", NL, NL, "--cal", "cal.h5", "-o", "o.h5"), "the same frame file given twice"),
+        (
+            ("calibrate", "--dark", NL, "odd.tif", "--flat", "f.tif", "-o", "c.h5"),
+            "odd.tif: frames are (40, 64), those of",
+        ),
+        (("calibrate", "--dark", NL, "--flat", "odd.tif", "-o", "c.h5"), "one panel set-up"),
+        (("calibrate", "--dark", NL, NL, "--flat", "f.tif", "-o", "c.h5"), "the same --dark file given twice"),
+        (("register", NL, "f.tif", "--fixed-frame", "5", "-o", "r.h5"), "frame 5 requested"),
+        (("register", NL, NL, "-o", "r.h5"), "the same image"),
+        (("register", NL, "odd.tif", "-o", "r.h5"), "differ in shape"),
+        (("register", "f.tif", "odd.tif", "-o", "r.h5", "--png", "a\nb.xyz"), "name the figure .png"),
+        (("process", "a\nb.h5"), "no such experiment file"),
+        (("process", NL), "not an experiment"),
+        (("register", NL, "coarse.tif", "-o", "r.h5"), "pixels of 0.1 mm"),  # the library's line
+    ],
+)
+def test_error_lines_print_a_name_with_a_newline_quoted(tmp_path, args, words):
+    """s51: error lines that put a name in their text themselves (a file given twice, frames of
+    another shape, a frame out of range, one image as both, a missing experiment file, the
+    --png name) printed its newline as a space (the one line's whitespace folded), ``a b.tif``,
+    which names no file; ``process`` named a TIFF twice, raw and quoted. Each as every other
+    name prints (radiokit._names.shown), once."""
+    rng = np.random.default_rng(0)
+    for name, rows, level, mm in (
+        (NL, 48, 1000, 0.05),
+        ("f.tif", 48, 3000, 0.05),
+        ("odd.tif", 40, 1000, 0.05),
+        ("coarse.tif", 48, 1000, 0.1),
+    ):
+        data = rng.normal(level, 10, (2, rows, 64)).astype(np.uint16)
+        tifffile.imwrite(tmp_path / name, data, imagej=True, resolution=(1 / mm, 1 / mm), metadata={"unit": "mm"})
+    line = one_line_error(run_cli(*args, cwd=tmp_path), words)
+    quoted = "'a\\nb.xyz'" if "--png" in args else "'a\\nb.h5'" if "a\nb.h5" in args else "'a\\nb.tif'"
+    assert quoted in line and "a b." not in line, line
+    assert args[0] != "process" or line.count(quoted) == 1, line  # named once
+
+
+def test_any_line_naming_a_given_file_raw_prints_it_as_names_print():
+    """What holds the rule for lines the command line did not word itself (the library's errors,
+    and its warnings, alike): a file given on the command line and named raw in a message prints
+    as every other name (shown), not folded to ``a b.tif``; names without control characters as typed."""
+    from argparse import Namespace
+    from pathlib import Path
+
+    from radiokit.cli import _error_line, _given_names
+
+    given = _given_names(Namespace(frames=[Path(NL), Path("c.tif")], cal=Path("cal.h5"), domain="log"))
+    assert given == [NL, "c.tif", "cal.h5"]
+    line = _error_line("correct", ValueError(f"c.tif, {NL}: frames of two sizes; see cal.h5"), given)
+    assert line == "radiokit correct: c.tif, 'a\\nb.tif': frames of two sizes; see cal.h5"
 
 
 # ------------------------------------------------------------------------------------------------
