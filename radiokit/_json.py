@@ -17,11 +17,35 @@ import math
 
 import numpy as np
 
-__all__ = ["NOT_FINITE", "strict", "dumps", "loads", "restore"]
+__all__ = ["NOT_FINITE", "MAX_DEPTH", "strict", "dumps", "loads", "loads_record", "restore", "too_deep", "TooDeep"]
 
 #: the top-level key holding the map ``JSON pointer -> "Infinity" | "-Infinity" | "NaN"``
 NOT_FINITE = "not_finite"
 _WORDS = {"Infinity": math.inf, "-Infinity": -math.inf, "NaN": math.nan}
+
+#: The deepest nesting of objects and arrays radiokit reads in a record of its own (a calibration's
+#: provenance nests 3 deep: inputs, one input, its fields). Why a limit: json reads a document up to
+#: Python's recursion limit (about 1000 levels, less the caller's stack), and everything that walks
+#: it afterwards (strict(), json.dumps, str) recursed again from deeper in the stack: a hand-made
+#: provenance 900 deep loaded, then `radiokit correct` died of RecursionError writing it (s51).
+MAX_DEPTH = 32
+
+
+def too_deep(value, limit: int = MAX_DEPTH) -> bool:
+    """Whether ``value`` (parsed JSON) nests dicts and lists more than ``limit`` levels deep;
+    walked with a list, not by recursion (the point is to judge what recursion cannot walk)."""
+    level = [value]
+    for _ in range(limit):
+        level = [
+            v
+            for x in level
+            if isinstance(x, (dict, list, tuple))
+            for v in (x.values() if isinstance(x, dict) else x)
+            if isinstance(v, (dict, list, tuple))
+        ]
+        if not level:
+            return False
+    return True
 
 
 def _word(x: float) -> str:
@@ -64,6 +88,24 @@ def dumps(value, **kwargs) -> str:
 def loads(text):
     """:func:`json.loads` and :func:`restore`: radiokit's own JSON read back with its numbers."""
     return restore(json.loads(text))
+
+
+class TooDeep(ValueError):
+    """A record nested past :data:`MAX_DEPTH` levels (:func:`loads_record`)."""
+
+
+def loads_record(text, where="JSON"):
+    """:func:`loads` of a record radiokit keeps in its files (a calibration's provenance), refused
+    past :data:`MAX_DEPTH` levels: :class:`TooDeep` naming ``where``, whether json could read it (a
+    hand-made one 900 deep) or not (100 000 deep: its RecursionError). Not JSON: json's ValueError."""
+    deep = TooDeep(f"{where} nests deeper than {MAX_DEPTH} levels, which no record of radiokit's does")
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise deep from None
+    if too_deep(value):
+        raise deep
+    return restore(value, where)
 
 
 def restore(value, where="JSON"):

@@ -1020,12 +1020,14 @@ def _json_attr(path, group, name) -> dict:
     """A JSON object stored as the text attribute ``name`` (``{}`` when absent)."""
     raw = group.attrs.get(name, "{}")
     try:
-        value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
-    except (TypeError, ValueError, RecursionError) as exc:
+        # refused past radiokit's depth, which is walked again by recursion (s51); the nulled
+        # non-finite numbers put back (radiokit._json)
+        value = strict_json.loads_record(raw.decode() if isinstance(raw, bytes) else raw, f"{group.name}@{name}")
+    except (TypeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
-    try:  # the non-finite numbers the writer nulled (radiokit._json)
-        value = strict_json.restore(value, f"{group.name}@{name}")
-    except ValueError as exc:
+    except strict_json.TooDeep as exc:  # not radiokit's record: its maker can say nothing of it
+        raise FormatError(path, f"{exc}: make the calibration again (radiokit calibrate)") from None
+    except ValueError as exc:  # a not_finite map naming no null
         raise FormatError(path, str(exc)) from None
     if not isinstance(value, dict):
         raise FormatError(path, f"{group.name}@{name} must be a JSON object, got {type(value).__name__}")
@@ -1954,16 +1956,20 @@ def input_lines(provenance: dict) -> list[str]:
     ``provenance["inputs"]`` (:class:`CalibrationInput`), or, for a calibration made before they
     were recorded, the files it names (``dark_files``, ``flat_files``, ``source``) and that the
     rest is not recorded. The file's JSON is anyone's: what is not as radiokit writes it is said
-    as unreadable, never raised."""
+    as unreadable, never raised. Every text of it as a name prints (:func:`radiokit._names.shown`:
+    a newline quoted and escaped, a byte that is not UTF-8 left to the command's output, ``\\xe9``):
+    they escaped control characters unquoted and printed such a byte ``\\udce9`` (s51)."""
+    from radiokit._names import shown
+
     inputs = provenance.get("inputs")
     if inputs is None:
         named = [
-            f"{what} {', '.join(map(str, files))}"
+            f"{what} {', '.join(map(shown, files))}"
             for what, files in (("darks", provenance.get("dark_files")), ("flats", provenance.get("flat_files")))
             if isinstance(files, list) and files
         ]
         if isinstance(provenance.get("source"), str):
-            named.append(f"darks and flats of {provenance['source']}")
+            named.append(f"darks and flats of {shown(provenance['source'])}")
         said = "; ".join(named) + " (as given; " if named else "not recorded ("
         return [f"{said}made before radiokit recorded its datasets, sizes and times)"]
     if not isinstance(inputs, list) or not all(isinstance(i, dict) for i in inputs):
@@ -1972,6 +1978,8 @@ def input_lines(provenance: dict) -> list[str]:
         return ["arrays, no files (Calibration.from_frames of frames in memory)"]
     lines = []
     for i in inputs:
+        # (a hand-made non-text value prints as str() of it: a container's texts are repr'd, escaped)
+        i = {k: shown(v) if isinstance(v, str) else v for k, v in i.items()}
         counts = " and ".join(
             f"{i[k]} {k}"
             for k in ("darks", "flats")

@@ -47,7 +47,7 @@ def _inputs(args, paths) -> list:
 
 def _raw_hints(args) -> dict:
     hints = {}
-    for name in ("preset", "dtype", "byteorder", "offset", "format", "dataset"):
+    for name in ("preset", "dtype", "byteorder", "offset", "format"):  # a dataset: _dataset_hints
         value = getattr(args, name, None)
         if value is not None:
             hints[name] = value
@@ -67,23 +67,53 @@ _NARROW_HELP = (
 )
 
 
-def _dataset_for_hdf5(hints: dict, paths) -> dict:
-    """``hints`` with ``--dataset`` applied to the HDF5 files among ``paths`` only, their TIFFs
-    (raw, ITEX) reading as ever (the reader's ``hdf5_dataset``). Why: ``info`` and ``correct`` of
-    TIFF and HDF5 files together refused ``--dataset`` for the TIFF, so no one command read them
-    (s50). Where none of them is HDF5 it stays ``dataset``, which the reader refuses naming the
-    file: an option that applies to nothing given is a mistake to say, not to drop."""
+#: the rule of every option naming a dataset, as the commands' help says it
+_DATASET_RULE = (
+    "A dataset option applies to the HDF5 files among the files it covers; the others (TIFF, raw, ITEX) are "
+    "read as they are, and it is refused where none of them is HDF5."
+)
+
+
+def _dataset_hints(args, kinds: dict) -> dict:
+    """The reader's dataset hints for each kind of file a command reads (``kinds``: kind -> its
+    files, e.g. ``{"dark": [...], "flat": [...]}``): the kind's own option (``--dark-dataset``,
+    ``--fixed-dataset``) over ``--dataset``, which covers the kinds without one.
+
+    One rule for every such option and command: the dataset applies to the HDF5 files among
+    those the option covers (the reader's ``hdf5_dataset``), their TIFF, raw and ITEX files read
+    as they are; refused, naming the option and a file, where none of them is HDF5 (an option
+    that applies to nothing given is a slip to say, not to drop). Why: ``info`` and ``correct``
+    applied ``--dataset`` so (s50) while ``calibrate`` and ``register`` refused a TIFF beside it,
+    and each of their per-kind options did too (s51)."""
+    own = {kind: getattr(args, f"{kind}_dataset", None) for kind in kinds}
+    shared = [p for kind, paths in kinds.items() if not own[kind] for p in paths]
+    fmt = getattr(args, "format", None)  # --format: every file read as that
+    both = _over_hdf5_files("--dataset", getattr(args, "dataset", None), shared, fmt)
+    return {
+        kind: _over_hdf5_files(f"--{kind}-dataset", own[kind], paths, fmt) if own[kind] else both
+        for kind, paths in kinds.items()
+    }
+
+
+def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
+    """``dataset`` (given by ``option``) for the HDF5 files among ``paths``, by the rule of
+    :func:`_dataset_hints`: ``{"hdf5_dataset": dataset}``, or ``{}`` where none is given."""
     from radiokit.io import FormatError, sniff
 
-    def hdf5(path) -> bool:
+    if not dataset or not paths:
+        return {}
+    found = []
+    for path in paths:
         try:
-            return sniff(path) == "hdf5"
+            found.append((path, fmt or sniff(path)))
         except (OSError, FormatError):  # a missing or unreadable file is named by its reader
-            return False
-
-    if not hints.get("dataset") or not any(hdf5(p) for p in paths):
-        return hints
-    return {k: v for k, v in hints.items() if k != "dataset"} | {"hdf5_dataset": hints["dataset"]}
+            return {"hdf5_dataset": dataset}
+    if not any(f == "hdf5" for _, f in found):
+        path, f = found[0]
+        what = {"tiff": "a TIFF", "itex": "an ITEX .img", "raw": "headerless raw"}.get(f, f)
+        others = ", nor is any other file it applies to" if len(found) > 1 else ""
+        raise FormatError(path, f"{option} names a dataset of HDF5 files, and this file is {what}, not HDF5{others}")
+    return {"hdf5_dataset": dataset}
 
 
 def _add_raw_hints(p):
@@ -98,7 +128,7 @@ def _add_raw_hints(p):
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
     g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
-    g = p.add_argument_group("HDF5 files of other layouts")
+    g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
         "--allow-external",
@@ -194,7 +224,8 @@ def _calibration_summary(meta: dict) -> dict:
 
     prov = meta.get("provenance", {})
     out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), prov)
-    return out | {"made from": input_lines(prov)}
+    unreadable = meta.get("provenance_unreadable")  # (its frames read: info describes the file)
+    return out | {"made from": [f"unreadable: {unreadable}"] if unreadable else input_lines(prov)}
 
 
 #: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
@@ -338,7 +369,7 @@ def cmd_info(args) -> int:
     # one bad file among several: its one line on stderr, the others still described (the first
     # error used to end the command with nothing printed for the good files), exit status 2; the
     # JSON has an entry per file given, a bad one's {"file", "error"}, so that its reader sees it too
-    hints = _dataset_for_hdf5(_raw_hints(args), args.files)
+    hints = _raw_hints(args) | _dataset_hints(args, {"files": args.files})["files"]
     for path in args.files:
         try:
             with open_frames(path, **hints) as src:
@@ -347,13 +378,13 @@ def cmd_info(args) -> int:
             if not _user_error(exc) or _interrupted(exc) or _debug(args) or (len(args.files) == 1 and not args.json):
                 raise
             failed += 1
-            line = _error_line("info", exc)
+            line = _error_line("info", exc, _given_names(args))
             print(line, file=sys.stderr)
             reports.append({"file": str(path), "error": line.removeprefix("radiokit info: ")})
             continue
         if not reports[-1]["frames"]:  # a stack of none: every other command refuses it so
             failed += 1
-            reports[-1]["error"] = f"{path}: no frames"
+            reports[-1]["error"] = f"{shown(path)}: no frames"
             print(f"radiokit info: {shown(path)}: no frames", file=sys.stderr)
     status = 2 if failed else 0
     if args.json:  # strict JSON: a NaN or inf in the metadata is null, named in each report's "not_finite"
@@ -399,11 +430,13 @@ _MOST_LINES = 10
 def _print_lines(key: str, lines: list) -> None:
     """``info``'s item ``key`` of several ``lines``, one a line under it: a calibration made from
     300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
-    shown = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
-    for k, line in enumerate(shown):
-        print(f"  {key if k == 0 else '':<10} {_escaped(line)}")
-    if len(shown) < len(lines):
-        print(f"  {'':<10} ... and {len(lines) - len(shown)} more (radiokit info --json lists them all)")
+    # (as radiokit.calibrate.input_lines wrote them: their names as names print, no _escaped, which
+    # printed a name's byte that is not UTF-8 as \udce9)
+    first = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
+    for k, line in enumerate(first):
+        print(f"  {key if k == 0 else '':<10} {line}")
+    if len(first) < len(lines):
+        print(f"  {'':<10} ... and {len(lines) - len(first)} more (radiokit info --json lists them all)")
 
 
 # -- calibrate ---------------------------------------------------------------------------------
@@ -488,7 +521,7 @@ def _odd_shapes(shapes) -> list:
     first = next(path for path, shape in shapes if shape == panel)
     others = f" and {counts[panel] - 1} other file{'s' * (counts[panel] > 2)}" if counts[panel] > 1 else ""
     return [
-        FormatError(path, f"frames are {shape}, those of {first}{others} {panel}")
+        FormatError(path, f"frames are {shape}, those of {shown(first)}{others} {panel}")
         for path, shape in shapes
         if shape != panel
     ]
@@ -529,7 +562,7 @@ def _stack(
                     raise FormatError(p, "no frames")
                 first = first or (p, src.frame_shape)
                 if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
-                    raise FormatError(p, f"frames are {src.frame_shape}, those of {first[0]} {first[1]}")
+                    raise FormatError(p, f"frames are {src.frame_shape}, those of {shown(first[0])} {first[1]}")
                 total += len(src) * src.frame_bytes
                 if bit_depths is not None:
                     bit_depths[str(p)] = src.meta.get("bit_depth")
@@ -537,7 +570,7 @@ def _stack(
                     scalings[str(p)] = value_scaling(src.meta)
                 if layouts is not None:
                     layouts[str(p)] = pixel_layout(src.meta)
-                check_budget(p, total, f"the frames of {', '.join(map(str, paths))}")
+                check_budget(p, total, f"the frames of {', '.join(map(shown, paths))}")
                 keys = src.meta.get("image_key")
                 # one entry per file and dataset: two datasets of one file (--dark-dataset d --flat-dataset f) are two
                 where = (str(p), src.meta.get("dataset"))
@@ -555,7 +588,7 @@ def _stack(
                             raise FormatError(p, f"frame {i} holds NaN or inf; darks and flats must be finite")
     if not frames:  # every file has frames (above), none of them keyed as wanted
         names = {2: "darks (image_key 2)", 1: "flats (image_key 1)"}.get(key, "frames")
-        raise ValueError(f"{', '.join(map(str, paths))}: no {names} among their frames")
+        raise ValueError(f"{', '.join(map(shown, paths))}: no {names} among their frames")
     return np.stack(frames)
 
 
@@ -629,41 +662,9 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def _kind_hints(args, kind: str) -> dict:
-    """``--dark-dataset`` / ``--flat-dataset`` over ``--dataset`` for one kind's files. Why: one
-    dataset for both could not calibrate TIFF darks beside NeXus HDF5 flats (the TIFF refused
-    it), nor two HDF5 files of different layouts (s49off), as register's --fixed-dataset."""
-    hints, own = _raw_hints(args), getattr(args, f"{kind}_dataset", None)
-    if own:
-        _hdf5_only(getattr(args, kind), f"--{kind}-dataset names the dataset of the {kind} files, and this one is {{}}")
-        return hints | {"dataset": own}
-    if hints.get("dataset"):
-        _hdf5_only(
-            getattr(args, kind),
-            f"--dataset names the dataset of the darks and flats both, and this {kind} file is {{}}: "
-            "name the HDF5 files' dataset with --dark-dataset or --flat-dataset instead",
-        )
-    return hints
-
-
-def _hdf5_only(paths, text: str) -> None:
-    """Refuse the first of ``paths`` that is not HDF5, in one line naming the option that gave it a
-    dataset (``text``, its ``{}`` the file's format): the reader's own line says "dataset=
-    (--dataset)", which is not what was given for one kind's files (review s49rv)."""
-    from radiokit.io import FormatError, sniff
-
-    for path in paths:
-        try:
-            fmt = sniff(path)
-        except (OSError, FormatError):  # a missing or unreadable file is named by its reader
-            continue
-        if fmt != "hdf5":
-            raise FormatError(path, text.format(f"{fmt}, not HDF5"))
-
-
 def _calibration_from_files(args, th):
     """The calibration from ``--dark`` and ``--flat`` frame files, each kind read with its own
-    hints (:func:`_kind_hints`)."""
+    hints (:func:`_dataset_hints`)."""
     from radiokit.calibrate import Calibration, FrameLevelError
     from radiokit.io import FormatError
 
@@ -672,12 +673,15 @@ def _calibration_from_files(args, th):
     # experiment-style file holds darks and flats, told apart by image_key
     _refuse_repeats(args.dark, "--dark file", ": its frames would count twice")
     _refuse_repeats(args.flat, "--flat file", ": its frames would count twice")
-    hints = {kind: _kind_hints(args, kind) for kind in ("dark", "flat")}
+    # --dark-dataset / --flat-dataset over --dataset: one dataset for both could not read two
+    # HDF5 files of different layouts (s49off)
+    datasets = _dataset_hints(args, {"dark": args.dark, "flat": args.flat})
+    hints = {kind: _raw_hints(args) | datasets[kind] for kind in ("dark", "flat")}
     origins, bits, layouts, scalings, inputs = {"dark": [], "flat": []}, {}, {}, {}, {}
     _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
     # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
     said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}
-    said = {k: opt if hints[k].get("dataset") else None for k, opt in said.items()}  # else the file's own layout
+    said = {k: opt if datasets[k] else None for k, opt in said.items()}  # else the file's own layout
     files, image_key = {"dark": args.dark, "flat": args.flat}, {"dark": 2, "flat": 1}  # NXtomo's keys
     darks, flats = (
         _stack(
@@ -696,8 +700,8 @@ def _calibration_from_files(args, th):
     declared = _declared(bits, layouts, scalings)  # before averaging: darks and flats read alike
     if darks.shape[1:] != flats.shape[1:]:  # the library's message cannot name the files
         raise ValueError(
-            f"flats {', '.join(map(str, args.flat))} are {flats.shape[1:]}, "
-            f"darks {', '.join(map(str, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
+            f"flats {', '.join(map(shown, args.flat))} are {flats.shape[1:]}, "
+            f"darks {', '.join(map(shown, args.dark))} {darks.shape[1:]}: one panel set-up, one frame size"
         )
     try:
         cal = Calibration.from_frames(darks, flats, progress=_progress(args), **declared, **th)
@@ -706,7 +710,7 @@ def _calibration_from_files(args, th):
         raise FormatError(path, f"frame {index} ({exc})") from exc
     except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
         raise ValueError(
-            f"darks {', '.join(map(str, args.dark))}, flats {', '.join(map(str, args.flat))}: {exc}"
+            f"darks {', '.join(map(shown, args.dark))}, flats {', '.join(map(shown, args.flat))}: {exc}"
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
@@ -741,10 +745,11 @@ def cmd_correct(args) -> int:
     if args.output.suffix.lower() not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):  # before calibrating, not after
         raise ValueError(f"{shown(args.output)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
     _refuse_repeats(args.frames, "frame file", ": its frames would be corrected twice into one stack")
+    hints = _raw_hints(args) | _dataset_hints(args, {"frames": args.frames})["frames"]  # refused before the work
     if args.cal:
         cal = Calibration.load(args.cal)
     elif len(args.frames) == 1:
-        _an_experiment(args.frames[0], _raw_hints(args))
+        _an_experiment(args.frames[0], hints)
         cal = Calibration.from_experiment(
             args.frames[0], allow_external=args.allow_external, narrow_frames=args.narrow_frames
         )
@@ -758,7 +763,7 @@ def cmd_correct(args) -> int:
         domain=args.domain,
         progress=_progress(args),
         overwrite=args.overwrite,
-        **_dataset_for_hdf5(_raw_hints(args), args.frames),
+        **hints,
     )
     print(
         f"{summary['frames']} frame(s) -> {shown(summary['output'])} ({summary['domain']}) "
@@ -779,16 +784,17 @@ def cmd_correct(args) -> int:
 
 
 # -- register ----------------------------------------------------------------------------------
-def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame", narrow_frames=False):
-    """Frame ``index`` of ``path`` as float32, the index counted from the start (-1 is the last
-    frame: the same-image check compares frames, not how they were written), and the file's metadata."""
+def _one_image(path, index, hints, allow_external=False, option="--fixed-frame", narrow_frames=False):
+    """Frame ``index`` of ``path`` (read with the reader's ``hints``: its dataset's) as float32, the
+    index counted from the start (-1 is the last frame: the same-image check compares frames, not
+    how they were written), and the file's metadata."""
     from radiokit.io import open_frames
 
-    hints = ({"dataset": dataset} if dataset else {}) | ({"allow_external": True} if allow_external else {})
+    hints = dict(hints) | ({"allow_external": True} if allow_external else {})
     hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
         if not -len(src) <= index < len(src):
-            raise ValueError(f"{path}: frame {index} requested, the file holds {len(src)}")
+            raise ValueError(f"{shown(path)}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)
         image, index = src[index], index % len(src)
         meta = src.meta
@@ -797,7 +803,7 @@ def _one_image(path, index, dataset, allow_external=False, option="--fixed-frame
     # (against numpy's float32 the comparison cast top, with an "overflow in cast" warning)
     if top > float(np.finfo(np.float32).max):
         raise ValueError(
-            f"{path}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
+            f"{shown(path)}: frame {index} holds values up to {top:.3g}, beyond float32's range, which registration uses"
         )
     return np.asarray(image, np.float32), index, meta
 
@@ -812,7 +818,7 @@ def _a_projection(path, keys, index, option) -> None:
     projections = np.flatnonzero(np.asarray(keys) == 0)
     which = f"the first projection is frame {projections[0]}" if projections.size else "the file holds no projection"
     raise ValueError(
-        f"{path}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
+        f"{shown(path)}: frame {index % len(keys)} is {kind} (image_key {key}), not a projection; {which} "
         f"({option} N picks one)"
     )
 
@@ -904,10 +910,12 @@ def _register_inputs(args):
     pixel sizes)."""
     from radiokit.io import check_output, check_same_pixel_size
 
+    # --fixed-dataset / --moving-dataset over --dataset: two HDF5 files of different layouts (s38a)
+    datasets = _dataset_hints(args, {"fixed": [args.fixed], "moving": [args.moving]})
     fixed, fixed_frame, fixed_meta = _one_image(
         args.fixed,
         args.fixed_frame,
-        args.fixed_dataset or args.dataset,
+        datasets["fixed"],
         args.allow_external,
         "--fixed-frame",
         args.narrow_frames,
@@ -915,7 +923,7 @@ def _register_inputs(args):
     moving, moving_frame, moving_meta = _one_image(
         args.moving,
         args.moving_frame,
-        args.moving_dataset or args.dataset,
+        datasets["moving"],
         args.allow_external,
         "--moving-frame",
         args.narrow_frames,
@@ -930,10 +938,14 @@ def _register_inputs(args):
     fixed_ds, moving_ds = (str(m.get("dataset") or "").strip("/") for m in (fixed_meta, moving_meta))
     if fixed_frame == moving_frame and fixed_ds == moving_ds and _same_file(args.fixed, args.moving):
         # an image against itself: a zero field that says nothing (two frames of one file are fine)
-        same = f"{args.fixed}" if str(args.fixed) == str(args.moving) else f"{args.fixed} and {args.moving}"
+        same = (
+            shown(args.fixed)
+            if str(args.fixed) == str(args.moving)
+            else f"{shown(args.fixed)} and {shown(args.moving)}"
+        )
         same += f", dataset {fixed_ds}" if fixed_ds else ""
         raise ValueError(
-            f"{args.moving}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
+            f"{shown(args.moving)}: fixed and moving are the same image ({same}, frame {fixed_frame}); "
             "register one image onto another (--fixed-frame/--moving-frame pick frames of one file)"
         )
     mask = None
@@ -950,13 +962,15 @@ def _register_inputs(args):
             check_output(out, overwrite=args.overwrite, inputs=_inputs(args, [args.fixed, args.moving]))
     _hdf5_name(args.output)
     if args.png is not None and os.path.realpath(args.png) == os.path.realpath(args.output):
-        raise ValueError(f"--png {args.png}: the same file as -o")
+        raise ValueError(f"--png {shown(args.png)}: the same file as -o")
     if args.png is not None:  # matplotlib refused it only after the registration and -o were written
         from matplotlib.backend_bases import FigureCanvasBase
 
         kinds = FigureCanvasBase.get_supported_filetypes()
         if args.png.suffix.lower().lstrip(".") not in kinds:
-            raise ValueError(f"--png {args.png}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})")
+            raise ValueError(
+                f"--png {shown(args.png)}: name the figure .png (or {', '.join(f'.{k}' for k in sorted(kinds))})"
+            )
     _check_register_memory(args, fixed)
     types = tuple(str(m.get("dtype", "")) for m in (fixed_meta, moving_meta))  # as stored
     return fixed, moving, mask, _types_hint(types, (fixed, moving))
@@ -983,7 +997,7 @@ def _check_register_memory(args, fixed) -> None:
     need, limit = per_pixel * fixed.size, memory_budget()
     if need > limit:
         raise ValueError(
-            f"fixed {args.fixed}, moving {args.moving}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
+            f"fixed {shown(args.fixed)}, moving {shown(args.moving)}: registering two {fixed.shape[0]}x{fixed.shape[1]} images "
             f"{'' if args.method in (None, 'rc') else f'with {args.method} '}"
             f"needs about {human_bytes(need)} ({per_pixel} bytes a pixel), over the memory budget of "
             f"{human_bytes(limit)}: raise {BUDGET_ENV} if the machine has that memory, or register smaller "
@@ -1012,7 +1026,7 @@ def cmd_register(args) -> int:
                 **with_default_preset(args.method, options),
             )
     except ValueError as exc:  # the library says "fixed" or "moving"; the user wants the file
-        raise ValueError(f"fixed {args.fixed}, moving {args.moving}: {exc}") from exc
+        raise ValueError(f"fixed {shown(args.fixed)}, moving {shown(args.moving)}: {exc}") from exc
     q = reg.quality
     registered = reg.warp(moving)
     # the preset that made the field (auto's choice and why, what it started from), as
@@ -1288,8 +1302,8 @@ def _refuse_repeats(files, what: str, why: str = "") -> None:
     for i, a in enumerate(files):
         for b in files[:i]:
             if os.path.exists(a) and _same_file(a, b):
-                same = "twice" if str(a) == str(b) else f"as {b} and as {a}"
-                raise ValueError(f"{a}: the same {what} given {same}{why}; give each file once")
+                same = "twice" if str(a) == str(b) else f"as {shown(b)} and as {shown(a)}"
+                raise ValueError(f"{shown(a)}: the same {what} given {same}{why}; give each file once")
 
 
 def _check_process_files(args) -> None:
@@ -1302,7 +1316,7 @@ def _check_process_files(args) -> None:
         for f in args.files:
             if _same_file(args.control, f):
                 raise ValueError(
-                    f"--control {args.control}: is the experiment file {f} itself; a control is another "
+                    f"--control {shown(args.control)}: is the experiment file {shown(f)} itself; a control is another "
                     "experiment, its inclusion as soft as the background"
                 )
     if args.output is not None and args.output.suffix.lower() in _DATA_SUFFIXES:
@@ -1349,11 +1363,11 @@ def cmd_process(args) -> int:
     missing = []  # every one named, each on its own line (InputErrors), not the first alone
     for f in [*args.files, *([args.control] if args.control else [])]:  # before the output checks name it
         if Path(f).is_dir():
-            missing.append(ValueError(f"{f}: is a folder, not an experiment file"))
+            missing.append(ValueError(f"{shown(f)}: is a folder, not an experiment file"))
         elif not (Path(f).exists() or Path(f).is_symlink()):
             # said first: `process runs/*.h5 -o results` with no runs/ said "results: exists"
             where = "--control " if f == args.control else ""
-            missing.append(ValueError(f"{where}{f}: no such experiment file"))
+            missing.append(ValueError(f"{where}{shown(f)}: no such experiment file"))
     if missing:
         from radiokit.errors import InputErrors
 
@@ -1392,11 +1406,11 @@ def cmd_process(args) -> int:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
             text = _process_error(str(exc), args, _reader_advice(exc))
-            if any(str(f) in text for f in inputs):  # named already (the control, say)
+            if any(str(f) in text or shown(f) in text for f in inputs):  # named already (the control, say)
                 if text == str(exc):
                     raise
                 raise ValueError(text) from exc
-            raise ValueError(f"{args.files[0]}: {text}") from exc
+            raise ValueError(f"{shown(args.files[0])}: {text}") from exc
         _print_headline(res.record, res.files)
         return 0 if _all_ok(res.record) else 1
     return _process_many(args, cfg)
@@ -1448,7 +1462,8 @@ def _batch_error(result, args=None) -> str:
     options' names, ``--overwrite`` for the API's ``--overwrite (overwrite=True)``."""
     from radiokit.io import OutputExistsError
 
-    return _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
+    text = _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
+    return " ".join(_names_shown(text, _given_names(args) if args else ()).split())  # one line, as _error_line's
 
 
 def _all_ok(record) -> bool:
@@ -1553,7 +1568,7 @@ def _add_calibrate(sub):
     )
     _add_raw_hints(p)
     g = next(g for g in p._action_groups if g.title == "HDF5 files of other layouts")
-    # one --dataset for both kinds could not read TIFF darks beside NeXus HDF5 flats (s49off)
+    # one --dataset for both kinds could not read two HDF5 files of different layouts (s49off)
     g.add_argument("--dark-dataset", help="the dark files' HDF5 dataset (instead of --dataset for them)")
     g.add_argument("--flat-dataset", help="the flat files' HDF5 dataset (instead of --dataset for them)")
     p.set_defaults(func=cmd_calibrate)
@@ -1618,15 +1633,15 @@ def _add_register_inputs(p):
         default=0,
         help="frame index in a multi-frame moving file (default 0; of an experiment file, a projection)",
     )
-    p.add_argument(
+    g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
+    g.add_argument(
         "--dataset",
         help="HDF5 dataset holding the frames of both images (e.g. entry/data/data of `radiokit correct`); "
         "--fixed-dataset / --moving-dataset name one image's",
     )
-    # one --dataset for both: a TIFF beside an HDF5 file of another layout, or two HDF5 files of
-    # different layouts, could not be registered at all (the TIFF refuses a dataset)
-    p.add_argument("--fixed-dataset", help="the fixed image's HDF5 dataset (instead of --dataset for it)")
-    p.add_argument("--moving-dataset", help="the moving image's HDF5 dataset (instead of --dataset for it)")
+    # one --dataset for both: two HDF5 files of different layouts could not be registered at all
+    g.add_argument("--fixed-dataset", help="the fixed image's HDF5 dataset (instead of --dataset for it)")
+    g.add_argument("--moving-dataset", help="the moving image's HDF5 dataset (instead of --dataset for it)")
     p.add_argument(
         "--allow-external",
         action="store_true",
@@ -2051,11 +2066,12 @@ def _main(argv) -> int:
         return 2
     # `radiokit sim run`, named whole as argparse's own errors and --help name it (not "radiokit sim")
     name = " ".join(filter(None, (args.command, getattr(args, "sim_command", None))))
+    given = _given_names(args)
     if not _debug(args):  # tifffile logs what it tolerates; the one line below says what matters
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {name}: {category.__name__}: {' '.join(str(message).split())}\n"
+            f"radiokit {name}: {category.__name__}: {' '.join(_names_shown(str(message), given).split())}\n"
         )
     _one_warning_per_file()
     _quiet_matplotlib()
@@ -2080,13 +2096,34 @@ def _main(argv) -> int:
             print(f"radiokit {name}: interrupted; no partial output was left", file=sys.stderr)
             return exit_status(_interrupted(exc))
         for one in getattr(exc, "errors", None) or [exc]:  # InputErrors: each bad input on its own line
-            print(_error_line(name, one), file=sys.stderr)
+            print(_error_line(name, one, given), file=sys.stderr)
         return 2
 
 
-def _error_line(command: str, exc: BaseException) -> str:
-    """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``."""
-    message = str(exc) or type(exc).__name__
+def _given_names(args) -> list[str]:
+    """The files named on the command line (every path option and argument), as given."""
+    names = []
+    for value in vars(args).values():
+        names += [str(v) for v in (value if isinstance(value, (list, tuple)) else [value]) if isinstance(v, Path)]
+    return names
+
+
+def _names_shown(text: str, names) -> str:
+    """``text`` with each of ``names`` that holds a control character (a newline, an escape) as
+    :func:`radiokit._names.shown` prints it, wherever a message put it raw. Why: a message names a
+    file however its writer chose, and the one line folds a raw newline into a space, ``a b.tif``,
+    naming no file (s51); the command line's own messages use ``shown``, and this holds the rule
+    for every other line a command prints of its files (the library's errors and warnings).
+    Longest first: a name inside a longer one is not split (the quoted form holds no raw control)."""
+    for name in sorted({n for n in names if shown(n) != n}, key=len, reverse=True):
+        text = text.replace(name, shown(name))
+    return text
+
+
+def _error_line(command: str, exc: BaseException, names=()) -> str:
+    """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``, the
+    files given (``names``: :func:`_given_names`) as names print."""
+    message = _names_shown(str(exc) or type(exc).__name__, names)
     # the API's words name its keyword too; at the shell only the option means anything
     from radiokit.io import OutputExistsError
 

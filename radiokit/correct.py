@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from radiokit._names import shown
 from radiokit._threads import pool, threads
 from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, frame_saturation
 from radiokit.checks import is_number, refuse_masked
@@ -982,7 +983,7 @@ def correct_files(
     segments, headers = _judge_segments(inputs, cal, image_keys, hints)
     n_plan = sum(len(picked) for _, picked, _, _ in segments)
     if not n_plan:
-        raise ValueError(f"{', '.join(map(str, inputs))}: {_nothing_to_correct(headers, image_keys)}")
+        raise ValueError(f"{', '.join(map(shown, inputs))}: {_nothing_to_correct(headers, image_keys)}")
     sources = _OneOpen(inputs, headers, hints)
     try:
         meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}

@@ -67,6 +67,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from radiokit._json import strict as strict_json
+from radiokit._names import shown
 from radiokit.checks import is_number, scalar
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
@@ -187,13 +188,13 @@ class Config:
                 raise ValueError(f"control={self.control!r}: expected a control experiment file's path")
             self.control = os.fspath(self.control)
         self.ks = _ks(self.ks)
-        shown = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
+        typed = " ".join(f"{k:g}" for k in self.ks) or "()"  # as --k takes them (was a tuple in two of three lines)
         if not self.ks or not all(np.isfinite(self.ks)):
-            raise ValueError(f"ks={shown}: expected finite enhancement factors")
+            raise ValueError(f"ks={typed}: expected finite enhancement factors")
         if len(set(self.ks)) != len(self.ks):
-            raise ValueError(f"ks={shown}: each enhancement factor once")
+            raise ValueError(f"ks={typed}: each enhancement factor once")
         if not all(0 < k <= K_MAX for k in self.ks):  # k = 0 is the reference itself; IF(k) - 1 is linear in k
-            raise ValueError(f"ks={shown}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
+            raise ValueError(f"ks={typed}: enhancement factors lie in (0, {K_MAX:g}] (the paper's: 1 and 2)")
         self.crop_mm = _crop_mm(self.crop_mm)
         if not isinstance(self.register_options, Mapping):  # a str was read as option names, one per character
             raise ValueError(
@@ -567,9 +568,9 @@ def _warn_tied_reference(path, pair, values, name) -> None:
     if len(pair) == 2 and values[0] == values[1]:
         import warnings
 
-        shown = f"{values[0]:g}" if name == "compression ratio" else f"{values[0] * 1e3:g} mm"  # gaps are in m
+        value = f"{values[0]:g}" if name == "compression ratio" else f"{values[0] * 1e3:g} mm"  # gaps are in m
         warnings.warn(
-            f"{path}: steps {pair[0]} and {pair[1]} record one {name}, {shown}: the main pair {pair[0]}->{pair[1]} "
+            f"{shown(path)}: steps {pair[0]} and {pair[1]} record one {name}, {value}: the main pair {pair[0]}->{pair[1]} "
             f"compares two images of one compression (the reference taken by step number); check the recorded {name}s",
             UserWarning,
             stacklevel=4,
@@ -644,7 +645,9 @@ def _warn_per_step(path, counts: dict, what: str, advice: str) -> None:
         per_step = ", ".join(
             f"step {s}: {n} in {k} of {m} frame{'s' if m > 1 else ''}" for s, (n, k, m) in counts.items() if n > 0
         )
-        warnings.warn(f"{path}: {what} in the projections ({per_step}): {advice}", CalibrationWarning, stacklevel=4)
+        warnings.warn(
+            f"{shown(path)}: {what} in the projections ({per_step}): {advice}", CalibrationWarning, stacklevel=4
+        )
 
 
 def _warn_saturated(path, saturated: dict, level) -> None:
@@ -1124,7 +1127,7 @@ def process(path, config: Config | None = None, *, out_dir=None, overwrite=False
     try:
         os.stat(path)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such experiment file") from None
+        raise FileNotFoundError(f"{shown(path)}: no such experiment file") from None
     except OSError as exc:  # a symbolic link in a loop, a folder on the way not searchable
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     out_dir = Path(out_dir) if out_dir is not None else path.parent / _folder_name(path)
@@ -1204,7 +1207,7 @@ def _check_inputs(path: Path, control) -> None:
     shapes, metas = [], []
     for p, what in ((path, "experiment"), *(((Path(control), "control experiment"),) if control else ())):
         if not p.exists():
-            raise FileNotFoundError(f"{p}: no such {what} file")
+            raise FileNotFoundError(f"{shown(p)}: no such {what} file")
         with open_frames(p) as src:
             kind = src.meta.get("format", src.format)
             if kind != "experiment":
@@ -1600,12 +1603,12 @@ def refuse_over_memory(paths, cfg: Config, share: int, over: str, control_name: 
 
     control = _process_need(cfg.control, cfg) if cfg.control else None
     if control is not None and control[0] > share:
-        raise ValueError(f"{control_name}{cfg.control}: processing {control[1]}, over {over}")
+        raise ValueError(f"{control_name}{shown(cfg.control)}: processing {control[1]}, over {over}")
     for path in paths:
         mine = _process_need(path, cfg)
         if mine is not None and mine[0] + (control[0] if control else 0) > share:
-            beside = f", and its control {cfg.control} {human_bytes(control[0])} beside it" if control else ""
-            raise ValueError(f"{path}: processing {mine[1]}{beside}, over {over}")
+            beside = f", and its control {shown(cfg.control)} {human_bytes(control[0])} beside it" if control else ""
+            raise ValueError(f"{shown(path)}: processing {mine[1]}{beside}, over {over}")
 
 
 def _all_workers(client) -> dict:

@@ -10,6 +10,7 @@ from datetime import UTC, datetime
 
 import h5py
 import numpy as np
+import pytest
 import tifffile
 from conftest import one_line_error, run_cli
 
@@ -285,6 +286,64 @@ def test_dataset_applies_to_the_hdf5_files_among_tiffs_in_info_and_correct(tmp_p
     one_line_error(res, "b.tif", "--dataset", "HDF5")
 
 
+def test_dataset_is_one_rule_in_calibrate_and_register_too(tmp_path):
+    """s51: ``info`` and ``correct`` applied ``--dataset`` to the HDF5 files among TIFFs (s50), but
+    ``calibrate`` and ``register`` still refused the TIFF. One rule for every option naming a
+    dataset (--dataset, --dark-dataset, --fixed-dataset, ...): it applies to the HDF5 files among
+    those it covers, the others read as they are; refused, naming the option and a file, only
+    where none of them is HDF5. Every command's help says so."""
+    darks, flats = _darks_flats()
+    tifffile.imwrite(tmp_path / "d.tif", darks, photometric="minisblack")
+    _write_h5(tmp_path / "f.h5", "scan/flat", flats)
+    res = run_cli(
+        "calibrate", "--dark", "d.tif", "--flat", "f.h5", "--dataset", "scan/flat", "-o", "c.h5", "-q", cwd=tmp_path
+    )
+    assert res.returncode == 0, res.stderr
+    # c, the mean of flat - dark over the panel: both kinds read (noise 20 / sqrt(5 * 48 * 64))
+    assert abs(Calibration.load(tmp_path / "c.h5").c - (flats.mean() - darks.mean())) < 1
+    got = [(i["path"], i["dataset"], i["option"]) for i in Calibration.load(tmp_path / "c.h5").provenance["inputs"]]
+    assert got == [("d.tif", None, None), ("f.h5", "scan/flat", "--dataset")]
+    # one kind's option over that kind's files alike: TIFF flats beside HDF5 flats
+    tifffile.imwrite(tmp_path / "f.tif", flats[:2], photometric="minisblack")
+    _write_h5(tmp_path / "f3.h5", "scan/flat", flats[2:])
+    args = ["--dark", "d.tif", "--flat", "f.tif", "f3.h5", "--flat-dataset", "scan/flat", "-o", "c2.h5", "-q"]
+    assert run_cli("calibrate", *args, cwd=tmp_path).returncode == 0
+    assert Calibration.load(tmp_path / "c2.h5").provenance["n_flats"] == 5
+    image = np.random.default_rng(3).normal(1000, 50, (40, 40)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "fixed.tif", image)
+    _write_h5(tmp_path / "moving.h5", "scan/frames", image[None])
+    res = run_cli(
+        "register",
+        "fixed.tif",
+        "moving.h5",
+        "--dataset",
+        "scan/frames",
+        "--method",
+        "ncc",
+        "-o",
+        "r.h5",
+        "-q",
+        cwd=tmp_path,
+    )
+    assert res.returncode in (0, 1) and (tmp_path / "r.h5").is_file(), res.stderr
+    # applied to nothing: refused, naming the option and the file, before any work
+    for command, extra in (
+        ("calibrate", ("--dark", "d.tif", "--flat", "f.tif", "--dataset", "x", "-o", "refused1.h5")),
+        ("calibrate", ("--dark", "d.tif", "--flat", "f.h5", "--dark-dataset", "x", "-o", "refused1.h5")),
+        ("register", ("d.tif", "fixed.tif", "--dataset", "x", "-o", "refused2.h5")),
+        ("register", ("fixed.tif", "moving.h5", "--fixed-dataset", "x", "-o", "refused2.h5")),
+        ("info", ("d.tif", "--dataset", "x")),
+        ("correct", ("d.tif", "--cal", "c.h5", "--dataset", "x", "-o", "refused3.h5")),
+    ):
+        option = next(a for a in extra if a.endswith("dataset"))
+        line = one_line_error(run_cli(command, *extra, cwd=tmp_path), option, "HDF5")
+        assert "d.tif" in line or "fixed.tif" in line, line
+        assert not list(tmp_path.glob("refused*"))
+    for command in ("info", "correct", "calibrate", "register"):
+        helps = " ".join(run_cli(command, "--help").stdout.split())
+        assert "the HDF5 files among" in helps and "read as they are" in helps, (command, helps)
+
+
 # ------------------------------------------------------------------------------------------------
 # 4. names holding control characters
 # ------------------------------------------------------------------------------------------------
@@ -311,6 +370,84 @@ def test_a_name_with_a_control_character_is_printed_quoted_and_escaped(tmp_path)
     assert "\x1b" not in res.stdout + res.stderr
     res = run_cli("correct", "p.tif", "--cal", "cal.h5", "-o", "q.tif", cwd=tmp_path)  # a plain name, as typed
     one_line_error(res, "radiokit correct: cal.h5: no such file")
+
+
+def test_made_from_names_print_as_every_other_name(tmp_path):
+    """s51: ``info``'s "made from" lines escaped a name's newline but did not quote it as every
+    other name printed is (radiokit._names.shown), and printed a name's byte that is not UTF-8 as
+    ``\\udce9`` where every other line prints ``\\xe9``. Both as the file's own line prints them."""
+    darks, flats = _darks_flats()
+    latin = os.fsdecode(b"caf\xe9.tif")  # a Latin-1 name: its byte 0xe9 is no UTF-8
+    tifffile.imwrite(tmp_path / "d\nx.tif", darks, photometric="minisblack")
+    tifffile.imwrite(tmp_path / latin, flats, photometric="minisblack")
+    res = run_cli("calibrate", "--dark", "d\nx.tif", "--flat", latin, "-o", "cal.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    res = run_cli("info", tmp_path / latin, tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert f"{tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout  # the file's own line, as it prints names
+    assert "made from  'd\\nx.tif': tiff, 5 darks;" in res.stdout, res.stdout
+    assert f"; '{tmp_path}/d\\nx.tif'\n" in res.stdout, res.stdout  # resolved, quoted alike
+    assert "\n             caf\\xe9.tif: tiff, 5 flats;" in res.stdout, res.stdout
+    assert f"; {tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout
+    assert "udce9" not in res.stdout, res.stdout
+
+
+NL = "a\nb.tif"  # a name holding a newline
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (("correct", NL, NL, "--cal", "cal.h5", "-o", "o.h5"), "the same frame file given twice"),
+        (
+            ("calibrate", "--dark", NL, "odd.tif", "--flat", "f.tif", "-o", "c.h5"),
+            "odd.tif: frames are (40, 64), those of",
+        ),
+        (("calibrate", "--dark", NL, "--flat", "odd.tif", "-o", "c.h5"), "one panel set-up"),
+        (("calibrate", "--dark", NL, NL, "--flat", "f.tif", "-o", "c.h5"), "the same --dark file given twice"),
+        (("register", NL, "f.tif", "--fixed-frame", "5", "-o", "r.h5"), "frame 5 requested"),
+        (("register", NL, NL, "-o", "r.h5"), "the same image"),
+        (("register", NL, "odd.tif", "-o", "r.h5"), "differ in shape"),
+        (("register", "f.tif", "odd.tif", "-o", "r.h5", "--png", "a\nb.xyz"), "name the figure .png"),
+        (("process", "a\nb.h5"), "no such experiment file"),
+        (("process", NL), "not an experiment"),
+        (("register", NL, "coarse.tif", "-o", "r.h5"), "pixels of 0.1 mm"),  # the library's line
+    ],
+)
+def test_error_lines_print_a_name_with_a_newline_quoted(tmp_path, args, words):
+    """s51: error lines that put a name in their text themselves (a file given twice, frames of
+    another shape, a frame out of range, one image as both, a missing experiment file, the
+    --png name) printed its newline as a space (the one line's whitespace folded), ``a b.tif``,
+    which names no file; ``process`` named a TIFF twice, raw and quoted. Each as every other
+    name prints (radiokit._names.shown), once."""
+    rng = np.random.default_rng(0)
+    for name, rows, level, mm in (
+        (NL, 48, 1000, 0.05),
+        ("f.tif", 48, 3000, 0.05),
+        ("odd.tif", 40, 1000, 0.05),
+        ("coarse.tif", 48, 1000, 0.1),
+    ):
+        data = rng.normal(level, 10, (2, rows, 64)).astype(np.uint16)
+        tifffile.imwrite(tmp_path / name, data, imagej=True, resolution=(1 / mm, 1 / mm), metadata={"unit": "mm"})
+    line = one_line_error(run_cli(*args, cwd=tmp_path), words)
+    quoted = "'a\\nb.xyz'" if "--png" in args else "'a\\nb.h5'" if "a\nb.h5" in args else "'a\\nb.tif'"
+    assert quoted in line and "a b." not in line, line
+    assert args[0] != "process" or line.count(quoted) == 1, line  # named once
+
+
+def test_any_line_naming_a_given_file_raw_prints_it_as_names_print():
+    """What holds the rule for lines the command line did not word itself (the library's errors,
+    and its warnings, alike): a file given on the command line and named raw in a message prints
+    as every other name (shown), not folded to ``a b.tif``; names without control characters as typed."""
+    from argparse import Namespace
+    from pathlib import Path
+
+    from radiokit.cli import _error_line, _given_names
+
+    given = _given_names(Namespace(frames=[Path(NL), Path("c.tif")], cal=Path("cal.h5"), domain="log"))
+    assert given == [NL, "c.tif", "cal.h5"]
+    line = _error_line("correct", ValueError(f"c.tif, {NL}: frames of two sizes; see cal.h5"), given)
+    assert line == "radiokit correct: c.tif, 'a\\nb.tif': frames of two sizes; see cal.h5"
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1742,7 +1742,10 @@ def _calibration(path, **attrs):
         (dict(thresholds="{not json"), ("thresholds", "not JSON")),
         (dict(thresholds="[1, 2]"), ("thresholds", "JSON object")),
         (dict(thresholds='{"no_such_threshold": 1}'), ("thresholds",)),
-        (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "not JSON")),
+        (dict(provenance="[" * 100_000 + "]" * 100_000), ("provenance", "nests deeper than")),
+        # deep, yet within what json reads: was loaded, and correct's writing of it into its output
+        # was a RecursionError traceback (s51)
+        (dict(provenance='{"inputs": ' + "[" * 900 + "]" * 900 + "}"), ("provenance", "nests deeper than")),
         (dict(provenance=b"\xff\xfe"), ("provenance",)),
         # JSON's and HDF5's true is Python's 1: the flats' current read as 1 uA scaled every
         # transmission by 1/200 in silence, c = true the counts domain by 1/3000; a string was a
@@ -1776,6 +1779,25 @@ def test_a_calibration_with_links_in_a_circle_is_one_line_from_the_cli(tmp_path)
     res = run_cli("correct", str(exp), "--cal", str(path), "-o", str(tmp_path / "out.h5"))
     one_line_error(res, str(path))
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_a_calibration_whose_record_nests_deep_is_one_line_and_info_still_describes_it(tmp_path):
+    """s51: a hand-made provenance nested 900 levels deep (``inputs``, read by json.loads) loaded,
+    and ``correct`` died of RecursionError writing it into its output (a traceback); ``info``
+    printed the 900 brackets as the file it was made from, and one nested past json's limit
+    failed the whole file ("cannot be read as hdf5"), though its frames read. ``correct`` refuses
+    it in one line (the record travels into its output, and its numbers steer the correction);
+    ``info`` describes the file and says the record unreadable."""
+    exp = _experiment(tmp_path / "exp.h5", shape=(8, 8))  # the calibration's
+    for depth in (900, 100_000):
+        cal = _calibration(tmp_path / f"cal{depth}.h5", provenance='{"inputs": ' + "[" * depth + "]" * depth + "}")
+        res = run_cli("correct", exp, "--cal", cal, "-o", tmp_path / "out.h5")
+        one_line_error(res, str(cal), "provenance", "nests deeper than")
+        assert not (tmp_path / "out.h5").exists()
+        res = run_cli("info", cal)
+        assert res.returncode == 0, res.stderr
+        assert "made from  unreadable: provenance nests deeper than" in res.stdout, res.stdout
+        assert "[[" not in res.stdout and len(res.stdout.splitlines()) < 10, res.stdout
 
 
 def test_a_good_calibration_still_loads(tmp_path):

@@ -1986,7 +1986,9 @@ def check_same_pixel_size(path, meta: dict, other, other_meta: dict, rule: str) 
         mine, theirs = meta.get(name), other_meta.get(name)
         if mine is None or theirs is None or math.isclose(mine, theirs, rel_tol=PIXEL_SIZE_RTOL):
             continue
-        raise FormatError(path, f"pixels of {mine * 1e3:g} mm ({name}), {other}'s {theirs * 1e3:g} mm: {rule}")
+        from radiokit._names import shown
+
+        raise FormatError(path, f"pixels of {mine * 1e3:g} mm ({name}), {shown(other)}'s {theirs * 1e3:g} mm: {rule}")
 
 
 #: NeXus's own units for a length (``@units``); none given means metres, as NXdetector says

@@ -1807,11 +1807,19 @@ class FrameSource:
             for name in ("defect_rows", "defect_columns"):
                 if f"{CALIBRATION}/{name}" in self._h5:
                     out[name] = self._checked(f"{CALIBRATION}/{name}", "iu", (1,))[()]
-            prov = strict_json.loads(self._h5[CALIBRATION].attrs.get("provenance", "{}"))
-            out["provenance"] = prov if isinstance(prov, dict) else {}
         except (FormatError, ValueError, TypeError):
             return {}
-        return out
+        # its record alone unreadable: said so ("made from  unreadable: ..."), the file still described;
+        # one nested past json's reach failed the whole file, "cannot be read as hdf5" (s51)
+        try:
+            prov = strict_json.loads_record(self._h5[CALIBRATION].attrs.get("provenance", "{}"), "provenance")
+        except strict_json.TooDeep as exc:
+            return out | {"provenance_unreadable": str(exc)}
+        except (ValueError, TypeError):
+            return out | {"provenance_unreadable": "provenance is not JSON text"}
+        if not isinstance(prov, dict):
+            return out | {"provenance_unreadable": "provenance is not a JSON object"}
+        return out | {"provenance": prov}
 
     def _read_hdf5(self, i):
         self._check_hdf5_written(i)
