@@ -594,10 +594,11 @@ def _source_refusal(args) -> str | None:
         if value is not None and not (math.isfinite(value) and value > 0):
             return f"{option} {value:g}: expected a positive finite number of seconds; nothing was sent"
     from acquisition.l8121 import REPLY_TIMEOUT_MAX_S  # the configuration's own bound, said before the port opens
+    from radiokit.checks import shown
 
     if args.reply_timeout is not None and args.reply_timeout > REPLY_TIMEOUT_MAX_S:
         return (
-            f"--reply-timeout {args.reply_timeout:g}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
+            f"--reply-timeout {shown(args.reply_timeout)}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
             "that long has failed, L8121.md; each wait of a switch-off is one); nothing was sent"
         )
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
@@ -620,8 +621,10 @@ def _hold_refusal(args) -> str | None:
             "nothing was sent"
         )
     if not (math.isfinite(args.hold) and 0 < args.hold <= HOLD_MAX_S):
+        from radiokit.checks import shown
+
         return (
-            f"--for {args.hold:g}: expected a positive number of seconds, at most {HOLD_MAX_S:g} (longer "
+            f"--for {shown(args.hold)}: expected a positive number of seconds, at most {HOLD_MAX_S:g} (longer "
             "exposures are a protocol's); nothing was sent"
         )
     return None

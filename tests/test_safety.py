@@ -1420,6 +1420,27 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     ({"error_poll_s": float("nan")}, r"\[source\] error_poll_s = nan: expected a finite number"),
     ({"error_poll_s": "1"}, r"\[source\] error_poll_s = '1': expected a number"),
     ({"limits": {"error_poll_s": 600}}, r"error_poll_s = 600: at most 60 s"),
+    # a value just past its bound, printed with the digits that set it apart from the bound: ":g"
+    # printed 60.0000001 as "60", refused for being over 60 (radiokit.checks.shown)
+    ({"error_poll_s": 60.0000001}, r"error_poll_s = 60\.0000001: at most 60 s"),
+    ({"timeout_s": 10.0000001}, r"timeout_s = 10\.0000001 s: at most 10 s"),
+    ({"limits": {"probe_timeout_s": 10.0000001}}, r"probe_timeout_s = 10\.0000001 s: at most 10 s"),
+    ({"watts_max": 75.0000001}, r"watts_max = 75\.0000001 W exceeds the L8121 rating of 75 W"),
+    ({"kv_max": 150.0000001}, r"kv_max = 150\.0000001 kV exceeds the L8121 rating of 150 kV"),
+    ({"kv_min": 39.9999999}, r"kv_min = 39\.9999999 kV is below the L8121 rating of 40 kV"),
+    ({"ua_max": 500.0000001}, r"ua_max = 500\.0000001 µA exceeds the L8121 rating of 500 µA"),
+    ({"voltage_kv": 150.0000001}, r"voltage_kv = 150\.0000001 kV is outside kv_min\.\.kv_max = 40\.\.150 kV"),
+    ({"current_ua": 500.0000001}, r"current_ua = 500\.0000001 µA is outside ua_min\.\.ua_max = 0\.\.500 µA"),
+    (
+        {"current_ua": 250.0000001, "watts_max": 15},
+        r"60 kV x 250\.0000001 µA = 15\.0000000\d* W exceeds watts_max = 15 W",
+    ),
+    ({"kv_tolerance": 30.0000001}, r"30\.0000001 kV at 60 kV counts as stable .* of the set value, 30 kV"),
+    ({"min_interval_s": 1.0000001}, r"min_interval_s = 1\.0000001: expected at most 1 s"),
+    (
+        {"poll_s": 0.1000000001, "watchdog_s": 0.4},
+        r"watchdog_s = 0\.4: expected at least 4 poll periods \(0\.4000000004 s\)",
+    ),
 ]
 
 
