@@ -594,10 +594,11 @@ def _source_refusal(args) -> str | None:
         if value is not None and not (math.isfinite(value) and value > 0):
             return f"{option} {value:g}: expected a positive finite number of seconds; nothing was sent"
     from acquisition.l8121 import REPLY_TIMEOUT_MAX_S  # the configuration's own bound, said before the port opens
+    from radiokit.checks import shown
 
     if args.reply_timeout is not None and args.reply_timeout > REPLY_TIMEOUT_MAX_S:
         return (
-            f"--reply-timeout {args.reply_timeout:g}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
+            f"--reply-timeout {shown(args.reply_timeout)}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
             "that long has failed, L8121.md; each wait of a switch-off is one); nothing was sent"
         )
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
@@ -620,8 +621,10 @@ def _hold_refusal(args) -> str | None:
             "nothing was sent"
         )
     if not (math.isfinite(args.hold) and 0 < args.hold <= HOLD_MAX_S):
+        from radiokit.checks import shown
+
         return (
-            f"--for {args.hold:g}: expected a positive number of seconds, at most {HOLD_MAX_S:g} (longer "
+            f"--for {shown(args.hold)}: expected a positive number of seconds, at most {HOLD_MAX_S:g} (longer "
             "exposures are a protocol's); nothing was sent"
         )
     return None
@@ -716,20 +719,34 @@ def _probe_found(result, args) -> int:
     warning, exit 3). No radiokit command leaves a tube on; the probe sent queries only (no
     ``XOF`` within it: it does not know the dialect until it ends). B's ``STS ERROR`` (pre-heating,
     or a refused query) shows nothing of the tube: the warning, exit 3, with nothing sent (the
-    notes' pre-heating, after power-on, is no beam to switch off)."""
-    import argparse
+    notes' pre-heating, after power-on, is no beam to switch off).
 
-    from acquisition.guardian import TUBE_WARNING
+    The wait for the power-on checks, the switch-off and their lines run under one signal guard,
+    finished (stop signals ignored: :meth:`~acquisition.guardian.SignalGuard.finish`) only once the
+    switch-off is confirmed or warned of. Under two, the wait's guard, finished as it ended, left
+    the signals ignored until the switch-off's was entered, the tube read on meanwhile."""
     from acquisition.l8121 import SourceState
 
     state = SourceState.__members__.get(dict(result.details).get("state", ""))
+    if state is not None and state.confirms_off:  # nothing to wait for or switch off: no guard
+        return 0
+    return _guarded(_probe_ends, result, args, state)
+
+
+def _probe_ends(guard, result, args, state) -> int:
+    """:func:`_probe_found` under its guard, the probe's ``STS`` having read ``state`` (None: a
+    word of no state), which does not confirm the tube off."""
+    import argparse
+
+    from acquisition.guardian import TUBE_WARNING
+
     read = "the probe's STS"  # which reading the lines below report
-    if state is not None and not state.confirms_off and not state.emitting:
+    if state is not None and not state.emitting:
         # a unit just switched on may still be checking itself (B's STS ERROR is its pre-heating):
         # the probe's one STS said so at power-on, and "X-RAYS MAY STILL BE ON" was a false alarm
         # (review s40rr2). Its checks waited out with queries only, as `source on` waits for them
         found: dict = {}
-        if _guarded(_probe_waits, result, args, state, found) == 3:
+        if _probe_waits(guard, result, args, state, found) == 3:
             return 3
         # (not `or`: SourceState is an IntEnum, and WARMUP_NEEDED is 0: review s40rr3)
         if found.get("state") is not None:
@@ -738,9 +755,11 @@ def _probe_found(result, args) -> int:
             read = "the probe's STS (the wait for the power-on checks read nothing)"
         if state.confirms_off:
             print(f"{args.port}: the controller's power-on checks are over: state {state.said}")
-    if state is not None and state.confirms_off:
-        return 0
+            return 0
     if state is not None and state.emitting:
+        # the switch-off owns the command from here: a stop only says "please wait" (raised before
+        # `off` has opened the port, it ended on the warning with the tube on, nothing sent)
+        guard.cleanup()
         _say(
             f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
             "(`source off`, confirmed by STS); no radiokit command leaves them on (other software, a crash, a power "
@@ -748,7 +767,7 @@ def _probe_found(result, args) -> int:
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
-        return _guarded(_source_guarded, off)
+        return _source_guarded(guard, off)
     said = state.said if state is not None else "unknown"
     _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)

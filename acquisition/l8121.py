@@ -95,7 +95,7 @@ from typing import Any
 
 from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault, WriteTimedOut
 from acquisition.transport import SerialTransport
-from radiokit.checks import is_integer, is_number
+from radiokit.checks import is_integer, is_number, shown
 
 __all__ = [
     "L8121",
@@ -473,7 +473,7 @@ class SourceConfig:
                 raise SettingRefused(f"{name} must be > 0")
         if not 0 < self.error_poll_s <= ERROR_POLL_MAX_S:
             raise SettingRefused(
-                f"error_poll_s = {self.error_poll_s:g}: "
+                f"error_poll_s = {shown(self.error_poll_s)}: "
                 + (
                     f"at most {ERROR_POLL_MAX_S:g} s (a controller fault unnoticed that long with the beam on; "
                     "a unit without SER is error_query = false)"
@@ -484,7 +484,7 @@ class SourceConfig:
         for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
             if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
                 raise SettingRefused(
-                    f"{name} = {getattr(self, name):g} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
+                    f"{name} = {shown(getattr(self, name))} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
                     "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
                 )
 
@@ -498,7 +498,7 @@ class SourceConfig:
         ):
             if (value > rating) if above else (value < rating):
                 raise SettingRefused(
-                    f"{name} = {value:g} {unit} "
+                    f"{name} = {shown(value)} {unit} "
                     f"{'exceeds' if above else 'is below'} the L8121 rating of {rating:g} {unit}; "
                     f"a configuration may only tighten the ratings"
                 )
@@ -526,16 +526,20 @@ class SourceConfig:
         ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
         if not kv_lo <= voltage_kv <= kv_hi:
             raise SettingRefused(
-                f"voltage_kv = {voltage_kv:g} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV", of="L8121"
+                f"voltage_kv = {shown(voltage_kv)} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV",
+                of="L8121",
             )
         if not ua_lo <= current_ua <= ua_hi:
             raise SettingRefused(
-                f"current_ua = {current_ua:g} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA", of="L8121"
+                f"current_ua = {shown(current_ua)} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA",
+                of="L8121",
             )
         watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
         if watts > w_hi:
             raise SettingRefused(
-                f"{voltage_kv:g} kV x {current_ua:g} µA = {watts:g} W exceeds watts_max = {w_hi:g} W", of="L8121"
+                f"{shown(voltage_kv)} kV x {shown(current_ua)} µA = {shown(watts, w_hi)} W "
+                f"exceeds watts_max = {w_hi:g} W",
+                of="L8121",
             )
 
     def check_tolerances(self, set_kv: float | None, set_ua: float | None, keys=("kv_tolerance", "ua_tolerance")):
@@ -554,9 +558,9 @@ class SourceConfig:
             tol = self._tolerance_at(key, spec, set_value)
             if tol > room * abs(set_value):
                 raise SettingRefused(
-                    f"{key} = {spec!r}: {tol:g} {unit} at {set_value:g} {unit} counts as "
+                    f"{key} = {spec!r}: {shown(tol, room * abs(set_value))} {unit} at {shown(set_value)} {unit} counts as "
                     f"stable a beam the monitor calls dropped (below beam_drop_fraction = {self.beam_drop_fraction:g} "
-                    f"of the set value): expected at most {room:.0%} of the set value, {room * abs(set_value):g} {unit}"
+                    f"of the set value): expected at most {room:.0%} of the set value, {shown(room * abs(set_value), tol)} {unit}"
                 )
 
     def _tolerance_at(self, key: str, spec: float | str | None, set_value: float) -> float:

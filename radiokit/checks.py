@@ -10,11 +10,12 @@ two tests refuse it and take numpy's integers and floats (readers of HDF5 get ``
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 import sys
 
-__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar"]
+__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar", "shown"]
 
 
 def is_number(value) -> bool:
@@ -55,6 +56,39 @@ def is_integer(value) -> bool:
     (True, True, False, False, False)
     """
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def shown(value, beside=None) -> str:
+    """``value`` as a message that refuses it prints it. Why: ``:g`` (6 significant digits) printed a
+    value refused for being just past its bound as the bound itself ("error_poll_s = 60: at most
+    60 s" for 60.0000001), and the user could not see why it was refused.
+
+    Without ``beside`` (a value as the user gave it): ``:g`` where that reads back as the same
+    number, else every digit it has (the shortest text that does). With ``beside`` (a value
+    computed from the user's, such as a power, whose last digits are rounding): ``:g``'s 6
+    significant digits, and as many more as it takes to tell it from ``beside``, the bound it
+    broke. Not a number: its ``repr``.
+
+    >>> shown(60.0000001), shown(600.0), shown(1e9), shown(0.1), shown(3), shown(float("nan")), shown("1")
+    ('60.0000001', '600', '1e+09', '0.1', '3', 'nan', "'1'")
+    >>> shown(0.1 * 3), shown(0.1 * 3, 0.2), shown(4 * 0.1000000001, 0.4), shown(0.4, 0.4)
+    ('0.30000000000000004', '0.3', '0.4000000004', '0.4')
+    """
+    if not is_number(value):
+        return repr(value)
+    if is_integer(value):
+        return str(int(value))
+    v = float(value)
+    if beside is None:
+        text = f"{v:g}"
+        return text if not math.isfinite(v) or float(text) == v else repr(v)
+    if not is_number(beside) or not math.isfinite(v) or v == float(beside):
+        return f"{v:g}"
+    for digits in range(6, 18):  # 17 significant digits tell any two doubles apart
+        text = f"{v:.{digits}g}"
+        if text != f"{float(beside):.{digits}g}":
+            return text
+    return repr(v)
 
 
 def image_hint(value, shape) -> str:

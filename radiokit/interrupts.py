@@ -38,6 +38,7 @@ __all__ = [
     "settle",
     "deferred",
     "held",
+    "die_with_parent",
 ]
 
 #: The signals every command stops on as on Ctrl-C. SIGQUIT (Ctrl-\) too: the terminal sends it to
@@ -364,3 +365,52 @@ def held(*signals):
             signal.signal(sig, handler)
         if came:
             signal.raise_signal(came[0])
+
+
+#: prctl(2)'s option asking the kernel for a signal when this process's parent dies (linux/prctl.h).
+_PR_SET_PDEATHSIG = 1
+
+#: How often :func:`_watch_parent` asks who its parent is, s: an orphan's work runs on this long at most.
+PARENT_POLL_S = 0.1
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process when ``parent_pid``, its parent, ends, however it ends: SIGKILL runs no
+    handler, so a parent killed so never kills the child it would have killed on any other stop
+    (``sim.mesh``'s gmsh meshed on to its end, an orphan). Call it first thing in the child.
+
+    On Linux the kernel sends this process SIGKILL as its parent dies (``prctl(PR_SET_PDEATHSIG)``).
+    The parent may have died before the request (between the fork and this call): no signal
+    will come, so the parent is checked after it, and a process whose parent is no longer
+    ``parent_pid`` (re-parented to init or a subreaper) ends at once, exit status 1. Elsewhere,
+    or where the request fails, a daemon thread does the same every :data:`PARENT_POLL_S`
+    (:func:`_watch_parent`): it needs the interpreter's lock, which ctypes gives up during a
+    foreign call (gmsh's). On Linux the parent is the *thread* that started the child: it must
+    outlive the child (``sim.mesh._in_child`` waits for it in that thread)."""
+    import os
+
+    asked = False
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            asked = libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):  # no libc or no prctl to call: the thread below
+            asked = False
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    if not asked:
+        _watch_parent(parent_pid)
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """:func:`die_with_parent`'s fallback: a daemon thread ends the process (exit status 1) once its
+    parent is no longer ``parent_pid``, within :data:`PARENT_POLL_S`. A POSIX orphan is adopted by
+    init or a subreaper, so its parent pid changes; a pid reused by then is not its parent."""
+    import os
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

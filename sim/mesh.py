@@ -260,13 +260,17 @@ def _keeping_signal_handlers(init) -> None:
                 signal.signal(sig, handler)
 
 
+_CHILD = "import radiokit.interrupts as i; i.die_with_parent({parent}); import sim.mesh as m; m._child_main()"
+
+
 def _in_child(name, *args):
     """``name(*args)`` (a gmsh step of this module) in a child Python process, its result back.
 
     Why: gmsh cannot be stopped. A signal's Python handler runs only when gmsh's C call returns,
     so Ctrl-C or a ``kill`` during ``gmsh.model.mesh.generate`` waited for the whole mesh (2.2 s
     near :data:`MAX_ELEMENTS` on an idle 2-core machine, tens of seconds under load). The child
-    is killed (SIGKILL) as soon as this process stops, by whatever exception. It runs in its own
+    is killed (SIGKILL) as soon as this process stops, by whatever exception, and dies with it
+    when it is killed (no exception: SIGKILL, the kernel's out-of-memory killer). It runs in its own
     session, so the terminal's Ctrl-C reaches this process alone (one "interrupted" line, no
     traceback of the child's), and gmsh's resetting of signal handlers (SIGTERM, SIGHUP, SIGPIPE
     to their defaults) stays in the child. Costs a Python start and gmsh's import per mesh, about
@@ -283,7 +287,9 @@ def _in_child(name, *args):
     # not communicate(): on Ctrl-C it waits 0.25 s for a child that will not stop by itself
     with tempfile.TemporaryFile() as err:
         proc = subprocess.Popen(
-            [sys.executable, "-c", "import sim.mesh as m; m._child_main()"],
+            # the child dies with this process (radiokit.interrupts.die_with_parent), asked before
+            # sim.mesh's imports: a SIGKILL here runs no ``finally`` to kill it, and it meshed on
+            [sys.executable, "-c", _CHILD.format(parent=os.getpid())],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=err,

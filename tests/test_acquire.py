@@ -1258,6 +1258,12 @@ def test_cli_refusals_of_an_option_exit_2_before_anything_is_opened(tmp_path, sc
             (("--kv", "60", "--ua", "250", "--for", "0"), r"^error: --for 0: expected a positive number"),
             (("--kv", "60", "--ua", "250", "--for", "inf"), r"^error: --for inf: expected a positive number"),
             (("--kv", "60", "--ua", "250", "--for", "3601"), r"^error: --for 3601: .*at most 3600"),
+            # the digits that set a value apart from its bound (":g" printed 3600.0000001 as 3600)
+            (("--kv", "60", "--ua", "250", "--for", "3600.0000001"), r"^error: --for 3600\.0000001: .*at most 3600"),
+            (
+                ("--kv", "60", "--ua", "250", "--for", "1", "--reply-timeout", "10.0000001"),
+                r"^error: --reply-timeout 10\.0000001: at most 10 s",
+            ),
         ):
             code = _cli("acquire", "source", "on", *port, *given)
             err = capsys.readouterr().err.strip().splitlines()
@@ -1360,6 +1366,11 @@ def test_a_voltage_beyond_the_panels_rating_is_refused_before_anything_is_sent(t
     assert load_protocol({**lab, "source": {**lab["source"], "voltage_kv": 100.0}}).source.voltage_kv == 100.0
     other = {**lab, "detector": {**lab["detector"], "kvp_max": 150.0}}
     assert load_protocol(other).source.voltage_kv == 120.0
+    # a rating just below the voltage is printed with the digits that set it apart (":g": "100")
+    just_below = {**lab, "source": {**lab["source"], "voltage_kv": 100.0}, "detector": {**lab["detector"]}}
+    just_below["detector"]["kvp_max"] = 99.9999999
+    with pytest.raises(DeviceError, match=r"voltage_kv = 100 exceeds the panel's rating .*kvp_max = 99\.9999999 kVp"):
+        load_protocol(just_below)
     proto = tmp_path / "lab.toml"
     proto.write_text(load_protocol(other).to_toml().replace("kvp_max = 150.0", "kvp_max = 100.0"))
     assert main(["acquire", str(proto), "--dry-run"]) == 2

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import json
 import os
 import re
@@ -769,6 +770,147 @@ def test_source_probe_at_power_on_waits_out_bs_pre_heating(controller, warm_up_d
     )
 
 
+def _stop_signals_of(pid) -> dict:
+    """``{"caught": ..., "ignored": ...}``: which of SIGINT and SIGTERM process ``pid`` catches and
+    which it ignores now, as the kernel has them (/proc/PID/status's SigCgt and SigIgn masks)."""
+    masks = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("SigCgt", "SigIgn"):
+            masks[key] = int(value, 16)
+    said = {"caught": "SigCgt", "ignored": "SigIgn"}
+    return {
+        what: {s.name for s in (signal.SIGINT, signal.SIGTERM) if masks[key] >> (s - 1) & 1}
+        for what, key in said.items()
+    }
+
+
+@functools.cache
+def _write_syscall() -> str:
+    """The number /proc/PID/syscall gives write(2) on this machine: read off a thread of this
+    process held writing to a pty whose output is stopped (Ctrl-S), as the command's will be."""
+    master, slave = os.openpty()
+    try:
+        os.write(master, b"\x13")
+        writer = threading.Thread(target=os.write, args=(slave, b"held"), daemon=True)
+        writer.start()
+        wait_until(
+            lambda: (
+                writer.native_id is not None
+                and _syscall(f"/proc/self/task/{writer.native_id}")[1:2] == ["0x" + format(slave, "x")]
+            ),
+            what="a held write",
+        )
+        call = _syscall(f"/proc/self/task/{writer.native_id}")
+        os.write(master, b"\x11")
+        writer.join(timeout=10)
+        return call[0]
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def _syscall(proc_dir) -> list:
+    """The fields of ``proc_dir``/syscall: the number and arguments of the system call its thread
+    is blocked in (["running"] when it is not in one)."""
+    try:
+        return Path(proc_dir, "syscall").read_text().split()
+    except OSError:
+        return []
+
+
+def _blocked_writing_to_the_terminal(pid) -> bool:
+    """The main thread of ``pid`` held in a write to its stdout or stderr."""
+    call = _syscall(f"/proc/{pid}")
+    return len(call) > 1 and call[0] == _write_syscall() and call[1] in ("0x1", "0x2")
+
+
+@pytest.mark.parametrize("stop", [None, "SIGTERM"])
+@pytest.mark.parametrize("controller", ["B"], indirect=True)
+def test_the_probe_keeps_its_stop_signals_until_its_switch_off_is_confirmed(controller, stop):
+    """`source probe` of a unit in its power-on checks (B's STS ERROR) that then reads X-rays on
+    waited under one signal guard and switched off under another: the first, finished, left the
+    stop signals ignored (SignalGuard.finish: the outcome decided) while the tube was still on,
+    until the second was entered. Now one guard, finished after the switch-off. The window was
+    a few hundred microseconds; the terminal's stopped output (Ctrl-S, sent as the STS that reads
+    X-rays on is answered) holds the command at its next line, "X-RAYS ARE ON", where the
+    disposition is read: SIGTERM and SIGINT were ignored there (both caught now). They are still
+    caught as the STS that confirms the switch-off arrives. A SIGTERM sent there (ignored before)
+    is acknowledged, the switch-off going on: the tube is on, and the command's one task left is
+    to switch it off (a stop raised there ended on the warning, the port not yet opened, nothing sent)."""
+    model, server = controller()
+    model.left_on(60, 250)
+    model.sts_error()  # the probe and the wait's first STS read ERROR; then the checks are over
+    master, slave = os.openpty()
+    seen = {}
+    proc = None
+
+    def stop_output():  # the wait's last STS, answered X-rays on: Ctrl-S before its reply goes
+        os.write(master, b"\x13")
+
+    def checks_over():
+        model.sts_error(on=False)
+        model.inject_after("STS", stop_output)
+
+    def off_confirmed():
+        seen["at the STS after XOF"] = _stop_signals_of(proc.pid)
+
+    # after the probe's last query: the wait's connect reads STS, then it polls STS
+    # (refused=True: an STS answered ERROR counts)
+    model.inject_after(
+        "DAG",
+        lambda: model.inject_after("STS", lambda: model.inject_after("STS", checks_over, refused=True), refused=True),
+    )
+    model.inject_after("XOF", lambda: model.inject_after("STS", off_confirmed))
+    out = bytearray()
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "radiokit.cli", "acquire", "source", "probe", "--port", server.url]
+            + ["--baudrate", "9600", "--ready-timeout", "20"],
+            stdin=subprocess.DEVNULL,
+            stdout=slave,
+            stderr=slave,
+            start_new_session=True,
+            env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        )
+        os.close(slave)
+        reader = threading.Thread(target=_drain, args=(master, out), daemon=True)
+        reader.start()
+        wait_until(lambda: _blocked_writing_to_the_terminal(proc.pid) and model.xray_on, what="the held line")
+        seen["held at the line after the wait"] = _stop_signals_of(proc.pid)
+        assert model.xray_on and b"X-RAYS ARE ON" not in out
+        if stop is not None:
+            proc.send_signal(SIGNALS[stop])
+        os.write(master, b"\x11")  # Ctrl-Q: the output goes on
+        code = proc.wait(timeout=30)
+        reader.join(timeout=10)
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+    text = out.decode(errors="replace")
+    last = text.strip().splitlines()[-1]
+    assert not model.xray_on and "X-RAYS ARE ON" in text, (code, text)
+    assert code == 0 and last.endswith("X-rays off (confirmed: state STANDBY)"), (code, text)
+    assert (stop is not None) == (f"{stop} received: switching the X-ray tube off first, please wait" in text), text
+    for when, signals in seen.items():
+        assert signals == {"caught": {"SIGINT", "SIGTERM"}, "ignored": set()}, (when, signals)
+    assert len(seen) == 2, seen
+
+
+def _drain(fd, into: bytearray) -> None:
+    """Read a pty's master side into ``into`` until every writer of its other side is gone."""
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:  # EIO: the other side closed
+            return
+        if not data:
+            return
+        into += data
+
+
 def _after_xon(model, act):
     """``act()`` in a thread as soon as the model has received an ``XON``."""
 
@@ -1420,6 +1562,27 @@ LIMITS = [  # the driver's own check (SourceConfig.check_exposure and its ceilin
     ({"error_poll_s": float("nan")}, r"\[source\] error_poll_s = nan: expected a finite number"),
     ({"error_poll_s": "1"}, r"\[source\] error_poll_s = '1': expected a number"),
     ({"limits": {"error_poll_s": 600}}, r"error_poll_s = 600: at most 60 s"),
+    # a value just past its bound, printed with the digits that set it apart from the bound: ":g"
+    # printed 60.0000001 as "60", refused for being over 60 (radiokit.checks.shown)
+    ({"error_poll_s": 60.0000001}, r"error_poll_s = 60\.0000001: at most 60 s"),
+    ({"timeout_s": 10.0000001}, r"timeout_s = 10\.0000001 s: at most 10 s"),
+    ({"limits": {"probe_timeout_s": 10.0000001}}, r"probe_timeout_s = 10\.0000001 s: at most 10 s"),
+    ({"watts_max": 75.0000001}, r"watts_max = 75\.0000001 W exceeds the L8121 rating of 75 W"),
+    ({"kv_max": 150.0000001}, r"kv_max = 150\.0000001 kV exceeds the L8121 rating of 150 kV"),
+    ({"kv_min": 39.9999999}, r"kv_min = 39\.9999999 kV is below the L8121 rating of 40 kV"),
+    ({"ua_max": 500.0000001}, r"ua_max = 500\.0000001 µA exceeds the L8121 rating of 500 µA"),
+    ({"voltage_kv": 150.0000001}, r"voltage_kv = 150\.0000001 kV is outside kv_min\.\.kv_max = 40\.\.150 kV"),
+    ({"current_ua": 500.0000001}, r"current_ua = 500\.0000001 µA is outside ua_min\.\.ua_max = 0\.\.500 µA"),
+    (
+        {"current_ua": 250.0000001, "watts_max": 15},
+        r"60 kV x 250\.0000001 µA = 15\.0000000\d* W exceeds watts_max = 15 W",
+    ),
+    ({"kv_tolerance": 30.0000001}, r"30\.0000001 kV at 60 kV counts as stable .* of the set value, 30 kV"),
+    ({"min_interval_s": 1.0000001}, r"min_interval_s = 1\.0000001: expected at most 1 s"),
+    (
+        {"poll_s": 0.1000000001, "watchdog_s": 0.4},
+        r"watchdog_s = 0\.4: expected at least 4 poll periods \(0\.4000000004 s\)",
+    ),
 ]
 
 

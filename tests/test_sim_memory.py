@@ -1,6 +1,7 @@
 """The mechanics' memory, judged before the solve, and stops during it (review s41sim: a 30 800-
 tetrahedron mesh of seed-breast reached 6.4 GB within 326 s and did not answer SIGTERM in 5 s)."""
 
+import contextlib
 import json
 import os
 import re
@@ -156,3 +157,118 @@ def test_a_stop_during_a_factorisation_is_acted_on_before_it_ends():
     assert said == "interrupted" and waited < 0.4 * alone, (said, waited, alone)
     # the factorisation ran on to its end, then the process exited as it chose: not a crash in BLAS
     assert proc.returncode == 0, proc.stderr.read()
+
+
+# seed-breast at 0.22 / 1.87 mm: 94 000 elements estimated, 2.8 s of gmsh on an idle 2-core machine
+# (test_data_safety's stop while gmsh meshes), so its child runs well past the second allowed below
+_MESH_FINE = """
+from sim.mesh import build_mesh
+from sim.scene import load_scene
+
+scene = load_scene("seed-breast")
+scene.mesh.size_contact_mm = None
+scene.mesh.size_inclusion_mm, scene.mesh.size_far_mm = 0.218, 1.872
+build_mesh(scene)
+"""
+
+
+def _children_of(pid) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+        except (OSError, IndexError, ValueError):
+            continue
+    return found
+
+
+def _alive(pid) -> bool:
+    """Running: not gone, not a zombie (an orphan's zombie waits for whoever adopted it to reap it)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _ends_within(pid, seconds) -> bool:
+    end = time.monotonic() + seconds
+    while _alive(pid) and time.monotonic() < end:
+        time.sleep(0.01)
+    return not _alive(pid)
+
+
+def _killed(pid) -> None:
+    if _alive(pid):
+        os.kill(pid, signal.SIGKILL)
+
+
+def test_gmsh_dies_with_a_parent_killed_while_it_meshes():
+    """SIGKILL runs no handler: the parent's kill of its gmsh child (sim.mesh._in_child) never came,
+    and the orphan meshed on to its end, a core and up to a few hundred MB for seconds, minutes
+    near MAX_ELEMENTS under load. The child now dies with its parent (Linux's parent-death signal).
+    The kill lands once gmsh's library is loaded in the child, as it meshes."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    parent = subprocess.Popen([sys.executable, "-c", _MESH_FINE], env=env, stderr=subprocess.PIPE)
+    meshing = []
+    try:
+        end = time.monotonic() + 60
+        while not meshing and parent.poll() is None and time.monotonic() < end:
+            for pid in _children_of(parent.pid):
+                with contextlib.suppress(OSError):
+                    if "libgmsh" in Path(f"/proc/{pid}/maps").read_text():
+                        meshing.append(pid)
+            time.sleep(0.01)
+        assert meshing and parent.poll() is None, parent.stderr.read()
+        parent.kill()
+        parent.wait()
+        assert _ends_within(meshing[0], 1.0), "gmsh's process meshed on after its parent was killed"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        for pid in meshing:
+            _killed(pid)  # the orphan this test made, if the fix failed
+
+
+def test_a_child_whose_parent_is_already_gone_ends_at_once(tmp_path):
+    """The parent killed between the fork and the child's request for the parent-death signal:
+    none will come, so the child checks who its parent is right after asking, and ends."""
+    gone = subprocess.Popen([sys.executable, "-c", ""])
+    gone.wait()  # its pid: a parent that is no more
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    code = f"from radiokit.interrupts import die_with_parent; die_with_parent({gone.pid}); print('lived')"
+    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=30)
+    assert res.returncode != 0 and "lived" not in res.stdout, (res.returncode, res.stdout, res.stderr)
+
+
+_WATCHED = """
+import os, sys, time
+from radiokit.interrupts import _watch_parent
+
+_watch_parent(os.getppid())
+print("watching", flush=True)
+time.sleep(30)
+"""
+
+
+def test_without_a_parent_death_signal_the_child_polls_for_its_parent():
+    """The fallback where the kernel has no parent-death signal (not Linux): a thread of the child
+    sees its parent gone (its parent pid changed) and ends the process, within its poll period
+    (0.1 s). Run here on Linux, the same code as elsewhere."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    start = f"import subprocess, sys; p = subprocess.Popen([sys.executable, '-c', {_WATCHED!r}]); print(p.pid, flush=True); p.wait()"
+    parent = subprocess.Popen([sys.executable, "-c", start], env=env, stdout=subprocess.PIPE, text=True)
+    child = None
+    try:
+        child = int(parent.stdout.readline())
+        assert parent.stdout.readline().strip() == "watching"
+        parent.kill()
+        parent.wait()
+        assert _ends_within(child, 1.0), "the child went on after its parent was killed"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        if child is not None:
+            _killed(child)

@@ -83,7 +83,7 @@ import numpy as np
 import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
-from radiokit.checks import is_integer, is_number
+from radiokit.checks import is_integer, is_number, shown
 
 __all__ = [
     "Protocol",
@@ -278,8 +278,8 @@ class Protocol:
         _check_source(self.source)
         if _whole(self.source.voltage_kv) > d.kvp_max:  # what the driver sends
             raise ProtocolError(
-                f"[source] voltage_kv = {self.source.voltage_kv:g} exceeds the panel's rating "
-                f"([detector] kvp_max = {d.kvp_max:g} kVp; the C7942SK-02 is rated 20-100 kVp)"
+                f"[source] voltage_kv = {shown(self.source.voltage_kv)} exceeds the panel's rating "
+                f"([detector] kvp_max = {shown(d.kvp_max)} kVp; the C7942SK-02 is rated 20-100 kVp)"
             )
 
     def settle_s(self, virtual: bool) -> float:
@@ -456,7 +456,7 @@ def _check_source(s: SourceSettings) -> None:
     if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
         # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
         raise ProtocolError(
-            f"[source] min_interval_s = {cfg.min_interval_s:g}: expected at most {MIN_INTERVAL_MAX_S:g} s "
+            f"[source] min_interval_s = {shown(cfg.min_interval_s)}: expected at most {MIN_INTERVAL_MAX_S:g} s "
             "(the controller needs ~0.05 s between commands, and each switch-off waits this long before its XOF)"
         )
     modes = cfg.focus_modes
@@ -473,7 +473,8 @@ def _check_source(s: SourceSettings) -> None:
     period = max(s.poll_s, cfg.poll_s)
     if 0 < s.watchdog_s < 4 * period:
         raise ProtocolError(
-            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods ({4 * period:g} s), or 0 for none"
+            f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods "
+            f"({shown(4 * period, s.watchdog_s)} s), or 0 for none"
         )
 
 
