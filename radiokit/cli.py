@@ -25,7 +25,7 @@ try:  # the second the imports take: Ctrl-C there printed an import's traceback 
     import numpy as np
 
     from radiokit import __version__
-    from radiokit._names import shown
+    from radiokit._names import controls_escaped, shown
     from radiokit.errors import RadiokitError
 except KeyboardInterrupt:
     print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
@@ -1463,7 +1463,7 @@ def _batch_error(result, args=None) -> str:
     from radiokit.io import OutputExistsError
 
     text = _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
-    return " ".join(_names_shown(text, _given_names(args) if args else ()).split())  # one line, as _error_line's
+    return _one_line(text, _given_names(args) if args else ())  # one line, as _error_line's
 
 
 def _all_ok(record) -> bool:
@@ -2071,7 +2071,7 @@ def _main(argv) -> int:
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {name}: {category.__name__}: {' '.join(_names_shown(str(message), given).split())}\n"
+            f"radiokit {name}: {category.__name__}: {_one_line(str(message), given)}\n"
         )
     _one_warning_per_file()
     _quiet_matplotlib()
@@ -2120,6 +2120,13 @@ def _names_shown(text: str, names) -> str:
     return text
 
 
+def _one_line(text: str, names=()) -> str:
+    """``text`` as one printed line: the files given (``names``) as names print
+    (:func:`_names_shown`), any other control character escaped (a file's own text: a dataset's
+    name, review s51rv2), its whitespace folded."""
+    return " ".join(controls_escaped(_names_shown(text, names)).split())
+
+
 def _error_line(command: str, exc: BaseException, names=()) -> str:
     """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``, the
     files given (``names``: :func:`_given_names`) as names print."""
@@ -2130,7 +2137,7 @@ def _error_line(command: str, exc: BaseException, names=()) -> str:
     message = message.replace(OutputExistsError.HOW, "--overwrite")
     if isinstance(exc, MemoryError):
         message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
-    return f"radiokit {command}: {' '.join(message.split())}"
+    return f"radiokit {command}: {_one_line(message)}"
 
 
 if __name__ == "__main__":

@@ -450,6 +450,23 @@ def test_any_line_naming_a_given_file_raw_prints_it_as_names_print():
     assert line == "radiokit correct: c.tif, 'a\\nb.tif': frames of two sizes; see cal.h5"
 
 
+def test_a_files_own_text_with_control_characters_never_reaches_the_terminal_raw(tmp_path):
+    """Review s51rv2: the net of s51 quotes the names given on the command line, but an error line
+    also quotes what a file holds: a hostile HDF5 file's dataset named ``x ESC]2;pwn BEL y`` (the
+    terminal's title set, its screen cleared with ``ESC[2J``) reached the terminal raw in "no
+    dataset ...; it holds ..." and "not a radiokit experiment file; it holds ...". Every control
+    character left in a line a command prints of an error is escaped as ``shown`` escapes it."""
+    evil = "x\x1b]2;pwn\x07y"
+    _write_h5(tmp_path / "evil.h5", evil, np.zeros((2, 8, 8), np.uint16))
+    _write_h5(tmp_path / "plain.h5", "scan/data", np.zeros((2, 8, 8), np.uint16))
+    for args in (("evil.h5", "--dataset", "nope"), ("evil.h5",), ("evil.h5", "plain.h5", "--dataset", "nope")):
+        res = run_cli("info", *args, cwd=tmp_path)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        line = next(line for line in res.stderr.splitlines() if "evil.h5" in line)
+        assert "\x1b" not in res.stderr and "\x07" not in res.stderr, repr(res.stderr)
+        assert "x\\x1b]2;pwn\\x07y" in line, line  # escaped, still naming the dataset
+
+
 # ------------------------------------------------------------------------------------------------
 # 5. an 8-bit and a 16-bit copy of one image registered
 # ------------------------------------------------------------------------------------------------
