@@ -111,6 +111,8 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
     if not any(f == "hdf5" for _, f in found):
         path, f = found[0]
         what = {"tiff": "a TIFF", "itex": "an ITEX .img", "raw": "headerless raw"}.get(f, f)
+        # under --format the file's own kind is not what refused it (an HDF5 file was called "a TIFF")
+        what = f"read as {fmt} (--format {fmt})" if fmt else what
         others = ", nor is any other file it applies to" if len(found) > 1 else ""
         raise FormatError(path, f"{option} names a dataset of HDF5 files, and this file is {what}, not HDF5{others}")
     return {"hdf5_dataset": dataset}

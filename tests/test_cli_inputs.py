@@ -344,6 +344,17 @@ def test_dataset_is_one_rule_in_calibrate_and_register_too(tmp_path):
         assert "the HDF5 files among" in helps and "read as they are" in helps, (command, helps)
 
 
+def test_a_dataset_refused_under_format_names_the_option_not_the_files_kind(tmp_path):
+    """Review s51rv2: ``info f.h5 --format tiff --dataset d`` said "this file is a TIFF, not
+    HDF5" of an HDF5 file: what refused the dataset was ``--format tiff``, which the line named
+    nowhere. It says the file is read as --format asks."""
+    _write_h5(tmp_path / "f.h5", "scan/f", np.zeros((2, 8, 8), np.uint16))
+    for fmt in ("tiff", "raw", "itex"):
+        line = one_line_error(run_cli("info", "f.h5", "--format", fmt, "--dataset", "scan/f", cwd=tmp_path), "f.h5")
+        assert f"--format {fmt}" in line and "--dataset" in line, line
+        assert "this file is a" not in line and "this file is headerless" not in line, line
+
+
 # ------------------------------------------------------------------------------------------------
 # 4. names holding control characters
 # ------------------------------------------------------------------------------------------------
