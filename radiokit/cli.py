@@ -88,6 +88,11 @@ def _dataset_hints(args, kinds: dict) -> dict:
     own = {kind: getattr(args, f"{kind}_dataset", None) for kind in kinds}
     shared = [p for kind, paths in kinds.items() if not own[kind] for p in paths]
     fmt = getattr(args, "format", None)  # --format: every file read as that
+    if getattr(args, "dataset", None) and kinds and not shared:  # dropped in silence before (review s51rv2)
+        raise ValueError(
+            f"--dataset {args.dataset} applies to no file: {' and '.join(f'--{k}-dataset' for k in kinds)} "
+            "name every file's dataset; give one or the other"
+        )
     both = _over_hdf5_files("--dataset", getattr(args, "dataset", None), shared, fmt)
     return {
         kind: _over_hdf5_files(f"--{kind}-dataset", own[kind], paths, fmt) if own[kind] else both

@@ -344,6 +344,23 @@ def test_dataset_is_one_rule_in_calibrate_and_register_too(tmp_path):
         assert "the HDF5 files among" in helps and "read as they are" in helps, (command, helps)
 
 
+def test_dataset_beside_every_kinds_own_option_is_refused_not_dropped(tmp_path):
+    """Review s51rv2: the rule says an option that applies to nothing given is a slip to say, not
+    to drop, yet ``--dataset`` beside ``--dark-dataset`` and ``--flat-dataset`` (register's
+    ``--fixed-dataset`` and ``--moving-dataset``) covers no file and was dropped in silence: a
+    calibration was written from datasets the user may not have meant. Refused in one line
+    naming it, nothing written."""
+    darks, flats = _darks_flats()
+    with h5py.File(tmp_path / "both.h5", "w") as h5:
+        h5["d"], h5["f"] = darks, flats
+    cal = ("calibrate", "--dark", "both.h5", "--flat", "both.h5", "--dark-dataset", "d", "--flat-dataset", "f")
+    reg = ("register", "both.h5", "both.h5", "--fixed-dataset", "d", "--moving-dataset", "f", "--method", "ncc")
+    for args in (cal + ("-o", "c.h5", "-q"), reg + ("-o", "r.h5", "-q")):
+        one_line_error(run_cli(*args, "--dataset", "x", cwd=tmp_path), "--dataset", "applies to no file")
+        assert not list(tmp_path.glob("[cr].h5"))
+    assert run_cli(*cal, "-o", "c.h5", "-q", cwd=tmp_path).returncode == 0  # without it, as ever
+
+
 def test_a_dataset_refused_under_format_names_the_option_not_the_files_kind(tmp_path):
     """Review s51rv2: ``info f.h5 --format tiff --dataset d`` said "this file is a TIFF, not
     HDF5" of an HDF5 file: what refused the dataset was ``--format tiff``, which the line named
