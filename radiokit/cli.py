@@ -1413,7 +1413,9 @@ def cmd_process(args) -> int:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
             text = _process_error(str(exc), args, _reader_advice(exc))
-            if any(str(f) in text or shown(f) in text for f in inputs):  # named already (the control, say)
+            # named already where it starts with a file (the control, say): a name anywhere in it was
+            # taken for one, and a file named "the" was refused in a line naming none (review s51rv2)
+            if any(text.startswith((f"{f}:", f"{shown(f)}:")) for f in inputs):
                 if text == str(exc):
                     raise
                 raise ValueError(text) from exc
