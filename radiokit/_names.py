@@ -37,3 +37,17 @@ def shown(name) -> str:
         for c in text
     )
     return "'" + "".join(escaped) + "'"
+
+
+def controls_escaped(text) -> str:
+    """``text`` with every character that moves or hides text on a terminal, other than
+    whitespace, escaped as :func:`shown` escapes it (``\\x1b``, ``\\u202e``), unquoted.
+
+    Why: a line a command prints of an error quotes what a file holds too, not only the names
+    it was given (which :func:`shown` prints): a hostile HDF5 file's dataset named
+    ``ESC]2;...BEL`` set the terminal's title from ``radiokit info``'s error line (review
+    s51rv2). Whitespace is left to the one line's folding."""
+    return "".join(
+        c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in _HIDING and not c.isspace() else c
+        for c in str(text)
+    )

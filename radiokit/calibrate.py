@@ -902,6 +902,14 @@ class Calibration:
             ``path`` exists (without ``overwrite``; a ``FileExistsError`` too), is a folder, is
             read-only or cannot be written, named in the message.
         """
+        if strict_json.too_deep(self.provenance):  # Calibration.load refuses it (s51): never written
+            from radiokit._names import shown
+
+            where = f"{shown(path)}: " if isinstance(path, (str, os.PathLike)) else ""
+            raise ValueError(
+                f"{where}not written: the calibration's provenance nests deeper than {strict_json.MAX_DEPTH} "
+                "levels, which Calibration.load refuses"
+            )
         if not isinstance(path, (str, os.PathLike)):  # a file object: the caller places the bytes
             with h5py.File(path, "w") as h5:
                 self._write(h5.create_group(group))

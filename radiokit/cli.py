@@ -25,7 +25,7 @@ try:  # the second the imports take: Ctrl-C there printed an import's traceback 
     import numpy as np
 
     from radiokit import __version__
-    from radiokit._names import shown
+    from radiokit._names import controls_escaped, shown
     from radiokit.errors import RadiokitError
 except KeyboardInterrupt:
     print("radiokit: interrupted while starting: nothing was read, sent or written", file=sys.stderr)
@@ -88,6 +88,11 @@ def _dataset_hints(args, kinds: dict) -> dict:
     own = {kind: getattr(args, f"{kind}_dataset", None) for kind in kinds}
     shared = [p for kind, paths in kinds.items() if not own[kind] for p in paths]
     fmt = getattr(args, "format", None)  # --format: every file read as that
+    if getattr(args, "dataset", None) and kinds and not shared:  # dropped in silence before (review s51rv2)
+        raise ValueError(
+            f"--dataset {args.dataset} applies to no file: {' and '.join(f'--{k}-dataset' for k in kinds)} "
+            "name every file's dataset; give one or the other"
+        )
     both = _over_hdf5_files("--dataset", getattr(args, "dataset", None), shared, fmt)
     return {
         kind: _over_hdf5_files(f"--{kind}-dataset", own[kind], paths, fmt) if own[kind] else both
@@ -111,6 +116,8 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
     if not any(f == "hdf5" for _, f in found):
         path, f = found[0]
         what = {"tiff": "a TIFF", "itex": "an ITEX .img", "raw": "headerless raw"}.get(f, f)
+        # under --format the file's own kind is not what refused it (an HDF5 file was called "a TIFF")
+        what = f"read as {fmt} (--format {fmt})" if fmt else what
         others = ", nor is any other file it applies to" if len(found) > 1 else ""
         raise FormatError(path, f"{option} names a dataset of HDF5 files, and this file is {what}, not HDF5{others}")
     return {"hdf5_dataset": dataset}
@@ -1406,7 +1413,9 @@ def cmd_process(args) -> int:
             res = process(args.files[0], cfg, out_dir=outs[0], overwrite=args.overwrite)
         except ValueError as exc:  # as process_many reports each file's error: name the file
             text = _process_error(str(exc), args, _reader_advice(exc))
-            if any(str(f) in text or shown(f) in text for f in inputs):  # named already (the control, say)
+            # named already where it starts with a file (the control, say): a name anywhere in it was
+            # taken for one, and a file named "the" was refused in a line naming none (review s51rv2)
+            if any(text.startswith((f"{f}:", f"{shown(f)}:")) for f in inputs):
                 if text == str(exc):
                     raise
                 raise ValueError(text) from exc
@@ -1463,7 +1472,7 @@ def _batch_error(result, args=None) -> str:
     from radiokit.io import OutputExistsError
 
     text = _process_error(result["error"], args, result.get("advice")).replace(OutputExistsError.HOW, "--overwrite")
-    return " ".join(_names_shown(text, _given_names(args) if args else ()).split())  # one line, as _error_line's
+    return _one_line(text, _given_names(args) if args else ())  # one line, as _error_line's
 
 
 def _all_ok(record) -> bool:
@@ -2071,7 +2080,7 @@ def _main(argv) -> int:
         logging.getLogger("tifffile").setLevel(logging.CRITICAL)
         # a warning is for the user: the command's line, not radiokit's file, line and source
         warnings.formatwarning = lambda message, category, *_, **__: (
-            f"radiokit {name}: {category.__name__}: {' '.join(_names_shown(str(message), given).split())}\n"
+            f"radiokit {name}: {category.__name__}: {_one_line(str(message), given)}\n"
         )
     _one_warning_per_file()
     _quiet_matplotlib()
@@ -2120,6 +2129,13 @@ def _names_shown(text: str, names) -> str:
     return text
 
 
+def _one_line(text: str, names=()) -> str:
+    """``text`` as one printed line: the files given (``names``) as names print
+    (:func:`_names_shown`), any other control character escaped (a file's own text: a dataset's
+    name, review s51rv2), its whitespace folded."""
+    return " ".join(controls_escaped(_names_shown(text, names)).split())
+
+
 def _error_line(command: str, exc: BaseException, names=()) -> str:
     """A user's error as the one line every command prints: ``radiokit COMMAND: MESSAGE``, the
     files given (``names``: :func:`_given_names`) as names print."""
@@ -2130,7 +2146,7 @@ def _error_line(command: str, exc: BaseException, names=()) -> str:
     message = message.replace(OutputExistsError.HOW, "--overwrite")
     if isinstance(exc, MemoryError):
         message = f"out of memory ({message}); lower RADIOKIT_MEMORY_BUDGET or read fewer frames"
-    return f"radiokit {command}: {' '.join(message.split())}"
+    return f"radiokit {command}: {_one_line(message)}"
 
 
 if __name__ == "__main__":

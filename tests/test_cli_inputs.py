@@ -344,6 +344,34 @@ def test_dataset_is_one_rule_in_calibrate_and_register_too(tmp_path):
         assert "the HDF5 files among" in helps and "read as they are" in helps, (command, helps)
 
 
+def test_dataset_beside_every_kinds_own_option_is_refused_not_dropped(tmp_path):
+    """Review s51rv2: the rule says an option that applies to nothing given is a slip to say, not
+    to drop, yet ``--dataset`` beside ``--dark-dataset`` and ``--flat-dataset`` (register's
+    ``--fixed-dataset`` and ``--moving-dataset``) covers no file and was dropped in silence: a
+    calibration was written from datasets the user may not have meant. Refused in one line
+    naming it, nothing written."""
+    darks, flats = _darks_flats()
+    with h5py.File(tmp_path / "both.h5", "w") as h5:
+        h5["d"], h5["f"] = darks, flats
+    cal = ("calibrate", "--dark", "both.h5", "--flat", "both.h5", "--dark-dataset", "d", "--flat-dataset", "f")
+    reg = ("register", "both.h5", "both.h5", "--fixed-dataset", "d", "--moving-dataset", "f", "--method", "ncc")
+    for args in (cal + ("-o", "c.h5", "-q"), reg + ("-o", "r.h5", "-q")):
+        one_line_error(run_cli(*args, "--dataset", "x", cwd=tmp_path), "--dataset", "applies to no file")
+        assert not list(tmp_path.glob("[cr].h5"))
+    assert run_cli(*cal, "-o", "c.h5", "-q", cwd=tmp_path).returncode == 0  # without it, as ever
+
+
+def test_a_dataset_refused_under_format_names_the_option_not_the_files_kind(tmp_path):
+    """Review s51rv2: ``info f.h5 --format tiff --dataset d`` said "this file is a TIFF, not
+    HDF5" of an HDF5 file: what refused the dataset was ``--format tiff``, which the line named
+    nowhere. It says the file is read as --format asks."""
+    _write_h5(tmp_path / "f.h5", "scan/f", np.zeros((2, 8, 8), np.uint16))
+    for fmt in ("tiff", "raw", "itex"):
+        line = one_line_error(run_cli("info", "f.h5", "--format", fmt, "--dataset", "scan/f", cwd=tmp_path), "f.h5")
+        assert f"--format {fmt}" in line and "--dataset" in line, line
+        assert "this file is a" not in line and "this file is headerless" not in line, line
+
+
 # ------------------------------------------------------------------------------------------------
 # 4. names holding control characters
 # ------------------------------------------------------------------------------------------------
@@ -448,6 +476,23 @@ def test_any_line_naming_a_given_file_raw_prints_it_as_names_print():
     assert given == [NL, "c.tif", "cal.h5"]
     line = _error_line("correct", ValueError(f"c.tif, {NL}: frames of two sizes; see cal.h5"), given)
     assert line == "radiokit correct: c.tif, 'a\\nb.tif': frames of two sizes; see cal.h5"
+
+
+def test_a_files_own_text_with_control_characters_never_reaches_the_terminal_raw(tmp_path):
+    """Review s51rv2: the net of s51 quotes the names given on the command line, but an error line
+    also quotes what a file holds: a hostile HDF5 file's dataset named ``x ESC]2;pwn BEL y`` (the
+    terminal's title set, its screen cleared with ``ESC[2J``) reached the terminal raw in "no
+    dataset ...; it holds ..." and "not a radiokit experiment file; it holds ...". Every control
+    character left in a line a command prints of an error is escaped as ``shown`` escapes it."""
+    evil = "x\x1b]2;pwn\x07y"
+    _write_h5(tmp_path / "evil.h5", evil, np.zeros((2, 8, 8), np.uint16))
+    _write_h5(tmp_path / "plain.h5", "scan/data", np.zeros((2, 8, 8), np.uint16))
+    for args in (("evil.h5", "--dataset", "nope"), ("evil.h5",), ("evil.h5", "plain.h5", "--dataset", "nope")):
+        res = run_cli("info", *args, cwd=tmp_path)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        line = next(line for line in res.stderr.splitlines() if "evil.h5" in line)
+        assert "\x1b" not in res.stderr and "\x07" not in res.stderr, repr(res.stderr)
+        assert "x\\x1b]2;pwn\\x07y" in line, line  # escaped, still naming the dataset
 
 
 # ------------------------------------------------------------------------------------------------

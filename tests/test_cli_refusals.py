@@ -500,6 +500,16 @@ def test_process_names_a_control_that_is_not_an_experiment_file(tmp_path):
     assert "exp.h5" not in res.stderr, res.stderr
 
 
+def test_process_names_a_file_whose_name_is_a_word_of_the_message(tmp_path):
+    """Review s51rv2: ``process`` took a line as naming its file already where the name was
+    anywhere in it, so an experiment file named ``the`` (a word of "no inclusion found: ... the
+    body ...") was refused in a line naming no file. A line names a file where it starts with it."""
+    synthetic(tmp_path / "the")
+    res = run_cli("process", "the", "-o", "res", "-q", "--no-report", "--cross-check", "none", cwd=tmp_path)
+    line = one_line_error(res, "no inclusion found")
+    assert line.startswith("radiokit process: the: no inclusion found"), line
+
+
 def test_register_refuses_a_dark_or_flat_frame_of_an_experiment_file(tmp_path):
     """`radiokit register exp.h5 ctl.h5` registered frame 0 of each, a dark (image_key 2), and
     reported "NCC 1.0000 -> 1.0000" as if two radiographs had been registered. A frame an

@@ -10,6 +10,7 @@ of their own; ``--debug``'s traceback is checked in a subprocess too (the interp
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import os
@@ -1798,6 +1799,37 @@ def test_a_calibration_whose_record_nests_deep_is_one_line_and_info_still_descri
         assert res.returncode == 0, res.stderr
         assert "made from  unreadable: provenance nests deeper than" in res.stdout, res.stdout
         assert "[[" not in res.stdout and len(res.stdout.splitlines()) < 10, res.stdout
+
+
+def test_a_calibration_load_would_refuse_is_never_saved(tmp_path):
+    """Review s51rv2: ``Calibration.save`` wrote a provenance nested past radiokit's 32 levels (a
+    record of one's own put in it), which ``Calibration.load`` then refused as "no record of
+    radiokit's ... make the calibration again": a file radiokit wrote that it would not read.
+    Refused at the save, naming the file, nothing written; 32 levels (the dict and 31 below) saved
+    and loaded back."""
+    from radiokit._json import MAX_DEPTH
+    from radiokit.calibrate import Calibration
+
+    n = 8
+    cal = Calibration(
+        np.full((n, n), 100.0, np.float32), np.full((n, n), 3000.0, np.float32), np.zeros((n, n), np.uint8)
+    )
+
+    def nested(levels):
+        value = 1
+        for _ in range(levels):
+            value = [value]
+        return value
+
+    cal.provenance["mine"] = nested(MAX_DEPTH - 1)  # the provenance's own level and 31 lists: 32
+    cal.save(tmp_path / "ok.h5")
+    assert Calibration.load(tmp_path / "ok.h5").provenance["mine"] == nested(MAX_DEPTH - 1)
+    cal.provenance["mine"] = nested(MAX_DEPTH)
+    with pytest.raises(ValueError, match=r"deep.h5.*nests deeper than 32"):
+        cal.save(tmp_path / "deep.h5")
+    assert not list(tmp_path.glob("deep*"))
+    with pytest.raises(ValueError, match="nests deeper than 32"):
+        cal.save(io.BytesIO())
 
 
 def test_a_good_calibration_still_loads(tmp_path):
