@@ -232,7 +232,13 @@ def _calibration_summary(meta: dict) -> dict:
     prov = meta.get("provenance", {})
     out = line_summary(meta.get("defect_rows", []), meta.get("defect_columns", []), prov)
     unreadable = meta.get("provenance_unreadable")  # (its frames read: info describes the file)
-    return out | {"made from": [f"unreadable: {unreadable}"] if unreadable else input_lines(prov)}
+    out |= {"made from": [f"unreadable: {unreadable}"] if unreadable else input_lines(prov)}
+    inputs = prov.get("inputs") if not unreadable else None
+    if isinstance(inputs, list) and all(isinstance(i, dict) for i in inputs):
+        # for --json: the records as written, their names exact (the lines quote them for a
+        # terminal, and a JSON reader could not get 'a\nb.tif' back from them); not printed
+        out["inputs"] = inputs
+    return out
 
 
 #: The most frames ``info`` holds to judge a file's saturation level by (evenly spaced; its default sample)
@@ -423,6 +429,8 @@ def cmd_info(args) -> int:
             held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
             print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
         for key, value in rep["metadata"].items():
+            if key == "inputs":  # a calibration's input records, for --json: "made from" says them
+                continue
             if key == "made from":  # a calibration's input files, one a line
                 _print_lines(key, value)
             else:

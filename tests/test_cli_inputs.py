@@ -418,6 +418,11 @@ def test_made_from_names_print_as_every_other_name(tmp_path):
     assert "\n             caf\\xe9.tif: tiff, 5 flats;" in res.stdout, res.stdout
     assert f"; {tmp_path}/caf\\xe9.tif\n" in res.stdout, res.stdout
     assert "udce9" not in res.stdout, res.stdout
+    assert "inputs" not in res.stdout, res.stdout  # the records are --json's; the lines say them
+    # --json keeps the names exact beside the lines: a reader gets the file back from them
+    meta = json.loads(run_cli("info", "--json", tmp_path / "cal.h5").stdout)[0]["metadata"]
+    assert [i["path"] for i in meta["inputs"]] == ["d\nx.tif", latin], meta["inputs"]
+    assert meta["inputs"][0]["resolved"] == str(tmp_path / "d\nx.tif")
 
 
 NL = "a\nb.tif"  # a name holding a newline
