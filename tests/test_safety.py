@@ -899,6 +899,34 @@ def test_the_probe_keeps_its_stop_signals_until_its_switch_off_is_confirmed(cont
     assert len(seen) == 2, seen
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_stop_during_the_probes_queries_ends_on_the_warning(controller, sig):
+    """Review s51rv3: the probe's queries ran outside any signal guard. A Ctrl-C there, the port
+    open and its STS asked, ended on radiokit's "interrupted; no partial output was left", exit 130
+    ("stopped, the tube confirmed off or never reached"), and SIGTERM killed the command without a
+    word (exit -15) -- a tube left on by other software still on, and nobody warned. `source status`,
+    stopped at the same query, ends on the warning, exit 3 (README's one rule). Now so does the probe."""
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    model.left_on(60, 250)
+    model.delay_once(5.0, "STS")  # the probe's STS: its reply is on its way when the stop comes
+    acq = Acquire("source", "probe", "--port", server.url, "--baudrate", "9600")
+    wait_until(lambda: "STS" in model.commands, what="the probe's STS")
+    time.sleep(0.2)
+    acq.signal(SIGNALS[sig])
+    code = acq.wait()
+    assert code == 3 and acq.last_line == TUBE_WARNING, (code, acq.output)
+    assert f"stopped by {sig}" in acq.output and "no partial output" not in acq.output, acq.output
+    assert model.commands == [
+        "HIV 60" if model.dialect == "A" else "PHV 600",
+        "CUR 250" if model.dialect == "A" else "PCU 250",
+        "XON",
+        "STS",
+    ], model.commands
+
+
 def _drain(fd, into: bytearray) -> None:
     """Read a pty's master side into ``into`` until every writer of its other side is gone."""
     while True:
