@@ -783,7 +783,8 @@ def _probe_ends(guard, result, args, state) -> int:
             return 0
     if state is not None and state.emitting:
         # the switch-off owns the command from here: a stop only says "please wait" (raised before
-        # `off` has opened the port, it ended on the warning with the tube on, nothing sent)
+        # `off` has opened the port, it ended on the warning with the tube on, nothing sent), and
+        # sets the exit code once the tube is confirmed off (below)
         guard.cleanup()
         _say(
             f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
@@ -792,7 +793,11 @@ def _probe_ends(guard, result, args, state) -> int:
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
-        return _source_guarded(guard, off)
+        code = _source_guarded(guard, off)
+        # a stop it only acknowledged: confirmed off, 128 + N as `source off` and `on` stopped in
+        # their switch-off exit (0 said "done": `probe && source on ...` switched X-rays on after
+        # the operator's Ctrl-C); not confirmed, 3 (review s51rv3)
+        return 128 + guard.acknowledged if code == 0 and guard.acknowledged is not None else code
     said = state.said if state is not None else "unknown"
     _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
