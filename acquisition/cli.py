@@ -688,13 +688,34 @@ def _source_said_last(args) -> int:
 
 
 def _source_held(args) -> int:
-    from acquisition.l8121 import SourceConfig, probe
-
     if args.action == "probe":
-        c = SourceConfig(baudrate=args.baudrate)
+        # under the command's signal guard from its first query: outside it, a Ctrl-C with the port
+        # open and nothing read off ended on "interrupted" (130) and SIGTERM killed the command
+        # without a word, a tube left on by other software on still (review s51rv3)
+        return _guarded(_probe_command, args)
+    # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
+    # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
+    # switches off first, and defers any further signal until that is done
+    return _guarded(_source_guarded, args)
+
+
+def _probe_command(guard, args) -> int:
+    """``source probe``: the queries, the report and :func:`_probe_found`, under ``guard``. A stop
+    during the queries ends as `source status` stopped at its connect: nothing that emits was sent,
+    and no STS read the tube off -- the warning, exit 3 (the port never written to: 128 + N)."""
+    from acquisition.guardian import TUBE_WARNING, StopSignal
+    from acquisition.l8121 import SourceConfig, SourceState, probe
+
+    c = SourceConfig(baudrate=args.baudrate)
+    state = None
+    try:
         result = probe(
             args.port, baudrates=((c.baudrate,) if c.baudrate else ()) + c.probe_baudrates, timeout_s=c.probe_timeout_s
         )
+        if result.found:
+            state = SourceState.__members__.get(dict(result.details).get("state", ""))
+            if state is not None and state.emitting:
+                guard.cleanup()  # read on: the switch-off owns the command from here (_probe_ends)
         if result.port_unavailable:  # no rate could be opened: nothing to report of the controller
             # a device error, as for every other source action and a series (README: exit 1), not
             # an option refused (2): the port may be right and its cable out
@@ -704,14 +725,21 @@ def _source_held(args) -> int:
         print(result.report())
         if not result.found:
             return 1
-        return _probe_found(result, args)
-    # SIGTERM and SIGHUP (kill, a closed terminal) would otherwise end the process where it stands,
-    # a warm-up or a beam left running: the guard turns them, like Ctrl-C, into an exception that
-    # switches off first, and defers any further signal until that is done
-    return _guarded(_source_guarded, args)
+    except KeyboardInterrupt as exc:  # queries only were sent (the probe's PROBE_QUERIES)
+        name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+        if getattr(exc, "probe_sent", None) is False:
+            _say(f"stopped by {name}; radiokit never reached the X-ray controller: nothing was sent")
+            return 128 + getattr(exc, "signum", 2)
+        if state is not None and state.confirms_off:  # stopped as the report was printed
+            _say(f"stopped by {name}; tube off (confirmed by STS: {state.name})")
+            return 128 + getattr(exc, "signum", 2)
+        _say(f"stopped by {name} while probing the controller: no X-ray command was sent, and no STS read the tube off")
+        _say(TUBE_WARNING)
+        return 3
+    return _probe_found(guard, result, args, state)
 
 
-def _probe_found(result, args) -> int:
+def _probe_found(guard, result, args, state) -> int:
     """The end of a ``source probe`` whose replies fit a dialect. Exit 0 says the tube confirmed
     off (README: exit codes), and the probe's ``STS`` is what read it: a state that emits (X-rays
     on, B's ``AGING``) is said loudly and switched off as ``source status`` does -- ``source off``
@@ -725,12 +753,9 @@ def _probe_found(result, args) -> int:
     finished (stop signals ignored: :meth:`~acquisition.guardian.SignalGuard.finish`) only once the
     switch-off is confirmed or warned of. Under two, the wait's guard, finished as it ended, left
     the signals ignored until the switch-off's was entered, the tube read on meanwhile."""
-    from acquisition.l8121 import SourceState
-
-    state = SourceState.__members__.get(dict(result.details).get("state", ""))
-    if state is not None and state.confirms_off:  # nothing to wait for or switch off: no guard
+    if state is not None and state.confirms_off:  # nothing to wait for or switch off
         return 0
-    return _guarded(_probe_ends, result, args, state)
+    return _probe_ends(guard, result, args, state)
 
 
 def _probe_ends(guard, result, args, state) -> int:
@@ -758,7 +783,8 @@ def _probe_ends(guard, result, args, state) -> int:
             return 0
     if state is not None and state.emitting:
         # the switch-off owns the command from here: a stop only says "please wait" (raised before
-        # `off` has opened the port, it ended on the warning with the tube on, nothing sent)
+        # `off` has opened the port, it ended on the warning with the tube on, nothing sent), and
+        # sets the exit code once the tube is confirmed off (below)
         guard.cleanup()
         _say(
             f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
@@ -767,7 +793,11 @@ def _probe_ends(guard, result, args, state) -> int:
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
-        return _source_guarded(guard, off)
+        code = _source_guarded(guard, off)
+        # a stop it only acknowledged: confirmed off, 128 + N as `source off` and `on` stopped in
+        # their switch-off exit (0 said "done": `probe && source on ...` switched X-rays on after
+        # the operator's Ctrl-C); not confirmed, 3 (review s51rv3)
+        return 128 + guard.acknowledged if code == 0 and guard.acknowledged is not None else code
     said = state.said if state is not None else "unknown"
     _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)

@@ -192,6 +192,9 @@ class SignalGuard:
         self._old_hook = None  # sys.unraisablehook while the guard is installed
         self._redelivered: list = []  # stops lost in a finalizer, being delivered again
         self.left: dict[int, object] = {}  # the handlers replaced, once finish() ignores the signals
+        # the first stop only acknowledged ("please wait"): a command whose switch-off it did not cut
+        # short still says it was stopped (exit 128 + N, the tube confirmed off: `source probe`)
+        self.acknowledged: int | None = None
 
     def __enter__(self) -> SignalGuard:
         self._depth += 1
@@ -355,6 +358,8 @@ class SignalGuard:
 
     def _handle(self, signum, frame) -> None:
         if self.stopping:
+            if self.acknowledged is None:
+                self.acknowledged = signum
             _say(f"\n{signal.Signals(signum).name} received: switching the X-ray tube off first, please wait")
             return
         if after_import(signum, frame, self._redelivered):  # raised inside an import, a bare except swallowed it

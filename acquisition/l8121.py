@@ -526,19 +526,21 @@ class SourceConfig:
         ua_lo, ua_hi = max(self.ua_min, 0.0), min(self.ua_max, r.ua_max)
         if not kv_lo <= voltage_kv <= kv_hi:
             raise SettingRefused(
-                f"voltage_kv = {shown(voltage_kv)} kV is outside kv_min..kv_max = {kv_lo:g}..{kv_hi:g} kV",
+                f"voltage_kv = {shown(voltage_kv)} kV is outside kv_min..kv_max = "
+                f"{shown(kv_lo, voltage_kv)}..{shown(kv_hi, voltage_kv)} kV",
                 of="L8121",
             )
         if not ua_lo <= current_ua <= ua_hi:
             raise SettingRefused(
-                f"current_ua = {shown(current_ua)} µA is outside ua_min..ua_max = {ua_lo:g}..{ua_hi:g} µA",
+                f"current_ua = {shown(current_ua)} µA is outside ua_min..ua_max = "
+                f"{shown(ua_lo, current_ua)}..{shown(ua_hi, current_ua)} µA",
                 of="L8121",
             )
         watts, w_hi = voltage_kv * current_ua / 1000, min(self.watts_max, r.watts_max)
         if watts > w_hi:
             raise SettingRefused(
                 f"{shown(voltage_kv)} kV x {shown(current_ua)} µA = {shown(watts, w_hi)} W "
-                f"exceeds watts_max = {w_hi:g} W",
+                f"exceeds watts_max = {shown(w_hi, watts)} W",
                 of="L8121",
             )
 

@@ -81,7 +81,11 @@ def shown(value, beside=None) -> str:
     v = float(value)
     if beside is None:
         text = f"{v:g}"
-        return text if not math.isfinite(v) or float(text) == v else repr(v)
+        if not math.isfinite(v) or _reads_back(text, value):
+            return text
+        # numpy's shortest digits in the value's own precision: a float32's float64 digits
+        # printed 60.1 as 60.099998474121094 (review s51rv3)
+        return str(value) if _reads_back(str(value), value) else repr(v)
     if not is_number(beside) or not math.isfinite(v) or v == float(beside):
         return f"{v:g}"
     for digits in range(6, 18):  # 17 significant digits tell any two doubles apart
@@ -89,6 +93,14 @@ def shown(value, beside=None) -> str:
         if text != f"{float(beside):.{digits}g}":
             return text
     return repr(v)
+
+
+def _reads_back(text: str, value) -> bool:
+    """``text`` parsed as ``value``'s own type is ``value`` (a float32 read as a float32)."""
+    try:
+        return type(value)(text) == value
+    except (TypeError, ValueError, ArithmeticError):
+        return False
 
 
 def image_hint(value, shape) -> str:

@@ -5322,3 +5322,34 @@ def test_a_switch_off_whose_port_is_gone_for_a_moment_keeps_trying_for_off_confi
     finally:
         for server in servers[1:]:
             server.__exit__(None, None, None)
+
+
+def test_a_refused_numpy_float32_setting_prints_the_digits_it_was_given():
+    """Review s51rv3: radiokit.checks.shown printed a float32 (HDF5's, numpy's: ``is_number`` takes
+    them) with the float64 digits of its binary value, ``voltage_kv = 150.10000610351562 kV`` for
+    150.1, where ``:g`` had said ``150.1``. The digits now read back as the value in its own type.
+    (A SourceConfig holds its settings as Python floats: its float32's digits are the float's.)"""
+    import numpy as np
+
+    from radiokit.checks import shown
+
+    with pytest.raises(ValueError, match=r"voltage_kv = 150\.1 kV is outside kv_min\.\.kv_max = 40\.\.150 kV"):
+        SourceConfig().check_exposure(np.float32(150.1), 100)
+    for value in (np.float32(0.1), np.float32(60.0000001), np.float32(1e-7), np.float32(123456.78)):
+        assert type(value)(shown(value)) == value and len(shown(value)) <= len(str(value)) + 1, (value, shown(value))
+    assert shown(60.0000001) == "60.0000001" and shown(np.float64(0.1) * 3) == "0.30000000000000004"
+
+
+def test_a_refused_exposure_prints_a_tightened_limit_with_the_digits_that_part_it_from_the_value():
+    """Review s51rv3: a configuration's own limit (kv_min, ua_max, watts_max tighten the ratings) just
+    past the value was printed with ``:g``: "voltage_kv = 40 kV is outside kv_min..kv_max = 40..150 kV"
+    for kv_min = 40.0000001, the refusal unreadable as before radiokit.checks.shown, from the other side."""
+    with pytest.raises(ValueError, match=r"voltage_kv = 40 kV is outside kv_min\.\.kv_max = 40\.0000001\.\.150 kV"):
+        SourceConfig(kv_min=40.0000001).check_exposure(40, 100)
+    with pytest.raises(ValueError, match=r"current_ua = 300 µA is outside ua_min\.\.ua_max = 0\.\.299\.9999999 µA"):
+        SourceConfig(ua_max=299.9999999).check_exposure(60, 300)
+    with pytest.raises(ValueError, match=r"60 kV x 250 µA = 15 W exceeds watts_max = 14\.9999999 W"):
+        SourceConfig(watts_max=14.9999999).check_exposure(60, 250)
+    # a limit far from the value keeps its short form
+    with pytest.raises(ValueError, match=r"outside kv_min\.\.kv_max = 40\.\.150 kV"):
+        SourceConfig().check_exposure(20, 100)

@@ -892,11 +892,77 @@ def test_the_probe_keeps_its_stop_signals_until_its_switch_off_is_confirmed(cont
     text = out.decode(errors="replace")
     last = text.strip().splitlines()[-1]
     assert not model.xray_on and "X-RAYS ARE ON" in text, (code, text)
-    assert code == 0 and last.endswith("X-rays off (confirmed: state STANDBY)"), (code, text)
+    # a stop acknowledged there still says the command was stopped, the tube confirmed off (review s51rv3)
+    assert code == (0 if stop is None else 128 + SIGNALS[stop]), (code, text)
+    assert last.endswith("X-rays off (confirmed: state STANDBY)"), (code, text)
     assert (stop is not None) == (f"{stop} received: switching the X-ray tube off first, please wait" in text), text
     for when, signals in seen.items():
         assert signals == {"caught": {"SIGINT", "SIGTERM"}, "ignored": set()}, (when, signals)
     assert len(seen) == 2, seen
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_stop_during_the_probes_queries_ends_on_the_warning(controller, sig):
+    """Review s51rv3: the probe's queries ran outside any signal guard. A Ctrl-C there, the port
+    open and its STS asked, ended on radiokit's "interrupted; no partial output was left", exit 130
+    ("stopped, the tube confirmed off or never reached"), and SIGTERM killed the command without a
+    word (exit -15) -- a tube left on by other software still on, and nobody warned. `source status`,
+    stopped at the same query, ends on the warning, exit 3 (README's one rule). Now so does the probe."""
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    model.left_on(60, 250)
+    model.delay_once(5.0, "STS")  # the probe's STS: its reply is on its way when the stop comes
+    acq = Acquire("source", "probe", "--port", server.url, "--baudrate", "9600")
+    wait_until(lambda: "STS" in model.commands, what="the probe's STS")
+    time.sleep(0.2)
+    acq.signal(SIGNALS[sig])
+    code = acq.wait()
+    assert code == 3 and acq.last_line == TUBE_WARNING, (code, acq.output)
+    assert f"stopped by {sig}" in acq.output and "no partial output" not in acq.output, acq.output
+    assert model.commands == [
+        "HIV 60" if model.dialect == "A" else "PHV 600",
+        "CUR 250" if model.dialect == "A" else "PCU 250",
+        "XON",
+        "STS",
+    ], model.commands
+
+
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_stop_during_the_probes_switch_off_exits_128_plus_n_once_the_tube_is_confirmed_off(controller):
+    """Review s51rv3: a Ctrl-C during the switch-off of a tube the probe read on said "please wait"
+    (the switch-off goes on, as it must) and then exited 0, "done": `source off` and `source on`
+    stopped during their switch-off exit 130 on the tube's confirmed line, and a shell took the 0
+    as the command done -- `probe && source on ...` went on to switch X-rays ON after the operator's
+    Ctrl-C (bash goes on after a child that handled SIGINT itself). Now 128 + N, the tube confirmed
+    off, the line after the `&&` not run."""
+    model, server = controller()
+    model.left_on(60, 250)
+    model.inject_after("XOF", lambda: model.delay_once(1.0, "STS"))  # the switch-off's confirming STS
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    probe = f"{sys.executable} -m radiokit.cli acquire source probe --port {server.url} --baudrate 9600"
+    proc = subprocess.Popen(
+        ["bash", "-c", f"{probe}; code=$?; echo exit $code; [ $code = 0 ] && echo the next command ran"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        wait_until(lambda: "XOF" in [c.split()[0] for c in model.commands], what="the switch-off's XOF")
+        time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)  # the terminal's Ctrl-C, to the shell and the command
+        text = proc.communicate(timeout=30)[0].decode(errors="replace")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+    assert not model.xray_on and "SIGINT received: switching the X-ray tube off first, please wait" in text, text
+    assert lines[-1] == "exit 130" and "the next command ran" not in text, text
+    assert lines[-2].endswith("X-rays off (confirmed: state STANDBY)"), text
 
 
 def _drain(fd, into: bytearray) -> None:
