@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -410,6 +411,16 @@ def _series(guard, args, p) -> int:
         f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
         err=False,
     )
+    if guard.acknowledged is not None:
+        # a stop during the closing switch-off, only acknowledged ("please wait": it did not cut
+        # the switch-off short): the series is complete, but the operator asked to stop, and 0
+        # let `acquire ... && the next command` go on after the Ctrl-C (bash goes on after a child
+        # that handled SIGINT itself), as `source probe` did (review s51rv3)
+        name = signal.Signals(guard.acknowledged).name
+        _say(
+            f"stopped by {name} during the closing switch-off; all {res.frames_total} frames saved: the series is complete"
+        )
+        return _finish(res, 128 + guard.acknowledged, err=False)
     return _finish(res, 0, err=False)
 
 

@@ -1969,3 +1969,39 @@ def test_a_stop_while_the_probe_waits_out_the_power_on_checks_ends_on_the_warnin
     acq.signal(SIGNALS[sig])
     assert acq.wait() == 3, acq.output
     assert acq.last_line == TUBE_WARNING and f"stopped by {sig}" in acq.output, acq.output
+
+
+def test_a_stop_during_a_complete_series_closing_switch_off_exits_128_plus_n(controller, scene_file, tmp_path):
+    """Review s51rv3: a Ctrl-C during the switch-off that closes a complete series (the guard's
+    cleanup: "please wait", the switch-off not cut short) exited 0, "done", so `acquire ... &&
+    the next command` went on after the operator's Ctrl-C, as `source probe` did. Now 128 + N
+    on the tube's confirmed line, every frame saved and said so."""
+    model, server = controller()
+    # the connect's XOF, one per beam period (the flats, each step), then the closing one
+    closing = 1 + 1 + len(STEPS) + 1
+    seen = [0]
+
+    def on_xof():
+        seen[0] += 1
+        if seen[0] == closing:
+            model.delay_once(1.0, "STS")  # the closing switch-off's confirming STS: the window held open
+        else:
+            model.inject_after("XOF", on_xof)
+
+    model.inject_after("XOF", on_xof)
+    acq = Acquire(write_protocol(tmp_path, scene_file, server), "--sim", "-q")
+    try:
+        wait_until(lambda: seen[0] >= closing, what="the closing XOF", timeout=60)
+        time.sleep(0.2)
+        acq.signal(signal.SIGINT)
+        code = acq.wait(timeout=30)
+    finally:
+        if acq.proc.poll() is None:
+            acq.proc.kill()
+            acq.proc.wait()
+    assert not model.xray_on, acq.output
+    assert "please wait" in acq.output, acq.output
+    assert f"stopped by SIGINT during the closing switch-off; all {DARKS + FLATS + PER_STEP * len(STEPS)} frames" in (
+        acq.output
+    )
+    assert code == 130 and CONFIRMED.search(acq.last_line), (code, acq.output)
