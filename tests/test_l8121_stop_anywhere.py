@@ -244,3 +244,19 @@ def test_a_stop_in_one_threads_reading_leaves_the_link_to_another_thread(dialect
         tried, failures = _sweep(src, model, lambda: src.on(60, 250), src.check, between=other_thread_polls)
     assert len(tried) > 30, len(tried)
     assert not failures, (len(failures), failures[:5])
+
+
+def test_a_stop_inside_the_reply_check_costs_the_switch_off_no_time_out(dialect):
+    """The transport calls the driver back once a reply line is read (``reply_fits``: does the line
+    fit the command?). A stop there, at each of its points in turn, during readings and settings
+    with the beam on: the switch-off that follows confirms within a quarter of a reply time-out.
+    Before, the line had left the transport's buffer before the check, and the switch-off waited
+    a whole reply time-out (2 s, then a quarter more for a late reply) for the interrupted
+    command's reply, which had come already."""
+    model, server = _source(dialect)
+    with server, L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0) as src:
+        tried, failures = _sweep(
+            src, model, lambda: src.on(60, 250), lambda: src.set_values(60, 200), into_transport=True
+        )
+    assert len(tried) > 5, len(tried)  # the check ran through the driver's grammar
+    assert not failures, (len(failures), failures[:5])
