@@ -2206,16 +2206,21 @@ class L8121:
         if self._transport is None:
             raise DeviceError(f"{self.port}: not connected (call connect())")
         me = threading.get_ident()
-        self._take_turn(me, line)
-        error, check = None, self._reidentify
-        seen = check.reconnects if check is not None else 0
+        error, check, seen = None, self._reidentify, None
         try:
-            reply = self._transport.query(line)
-        except DeviceError as exc:
-            error = exc
-            self._claim_off(me)  # before another thread's queued exchange gets the link
+            # taken inside the try: a signal's stop lands after a call returns, and one landing as
+            # _take_turn returns (the link taken) left it taken to every other thread until this
+            # one asked again -- a caller that handles the stop without a switch-off never does
+            # (tests/test_l8121_stop_anywhere.py, another thread's poll)
+            self._take_turn(me, line)
+            seen = check.reconnects if check is not None else None
+            try:
+                reply = self._transport.query(line)
+            except DeviceError as exc:
+                error = exc
+                self._claim_off(me)  # before another thread's queued exchange gets the link
         finally:
-            if check is not None and check.reconnects != seen and (self._may_be_on or self._state_unread):
+            if seen is not None and check.reconnects != seen and (self._may_be_on or self._state_unread):
                 self.unit_unverified = True
             with self._turns:
                 if self._busy == me:

@@ -991,8 +991,15 @@ class SerialTransport:
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
-                line, buf = bytes(buf[:cut]), buf[cut + 1 :]
-                self._rx = buf
+                line, rest = bytes(buf[:cut]), buf[cut + 1 :]
+                # With nothing owed, the line is this command's reply whatever the driver's
+                # reply_fits says: it stays in self._rx until returned, so that a stop landing in
+                # that callback leaves it to _drain_pending, which discards it at once -- taken out
+                # first, the switch-off after the stop waited a whole reply time-out (and a
+                # quarter) for a reply that had come. A line that may be a late one leaves first,
+                # as before: whether it was cannot be decided after a stop.
+                if self._owed or not line.strip():
+                    buf = self._rx = rest
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()
                     if undecided is not None:
@@ -1008,9 +1015,12 @@ class SerialTransport:
                         # no longer owed either way (a signal may end this wait: nothing is left
                         # owed for a line already read)
                         undecided = (text, self._owed.pop(0)[0])
+                        buf = self._rx = rest  # (out already: one was owed)
                         continue
                     if self._is_late(command, text):
+                        buf = self._rx = rest  # (out already: one was owed)
                         continue
+                    self._rx = rest
                     return text
                 continue
             left = deadline - time.monotonic()
