@@ -3397,20 +3397,23 @@ class L8121:
         """
         me = threading.get_ident()
         self._local.epoch = None  # from here on this thread switches off: nothing it sends is routine
-        with self._turns:
-            waited = False
-            while self._off_thread not in (None, me):  # another thread is switching off: its outcome
-                waited = True
-                self._turns.wait()
-            if waited:
-                if self.off_failed is not None:
-                    raise self.off_failed
-                return self._off_state
-            self._off_thread, self._off_running = me, True
-            self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
         attempts, last, silent, switch = int(self.config.off_attempts), None, False, None
         window = max(float(self.config.off_confirm_s), 0.0) / attempts
+        # the ownership taken inside the try: a signal's stop landing as the with block is left
+        # kept it taken, and every other thread's exchange waited until this one switched off
+        # again (review s51rv; tests/test_l8121_stop_anywhere.py)
         try:
+            with self._turns:
+                waited = False
+                while self._off_thread not in (None, me):  # another thread is switching off: its outcome
+                    waited = True
+                    self._turns.wait()
+                if waited:
+                    if self.off_failed is not None:
+                        raise self.off_failed
+                    return self._off_state
+                self._off_thread, self._off_running = me, True
+                self._routine_epoch += 1  # other threads' routine readings in progress send nothing more
             for attempt in range(attempts):
                 if attempt:
                     time.sleep(self.config.poll_s)
@@ -3464,7 +3467,8 @@ class L8121:
             self.off_failed.operate_switch = switch  # the position it names (None: not named)
         finally:
             with self._turns:
-                self._off_thread, self._off_running = None, False
+                if self._off_thread == me:  # its own: a caller that waited for another's leaves it
+                    self._off_thread, self._off_running = None, False
                 self._turns.notify_all()
         raise self.off_failed from last
 

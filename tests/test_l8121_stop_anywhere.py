@@ -225,23 +225,40 @@ def test_a_stop_in_one_threads_reading_leaves_the_link_to_another_thread(dialect
     it taken until then. Then this thread's switch-off confirms, as above."""
     model, server = _source(dialect)
     with server, L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0) as src:
+        tried, failures = _sweep(
+            src, model, lambda: src.on(60, 250), src.check, between=lambda: _another_thread_reads(src.check)
+        )
+    assert len(tried) > 30, len(tried)
+    assert not failures, (len(failures), failures[:5])
 
-        def other_thread_polls():
-            done = threading.Event()
 
-            def poll():
-                try:
-                    src.check()
-                except Exception:  # cut short by a switch-off this thread left pending: not blocked
-                    pass
-                done.set()
+def _another_thread_reads(read):
+    """None when ``read()`` in another thread ends within :data:`OFF_BOUND_S`, else why not."""
+    done = threading.Event()
 
-            threading.Thread(target=poll, daemon=True).start()
-            if not done.wait(OFF_BOUND_S):
-                return "another thread's check() waited for the link this thread left"
-            return None
+    def poll():
+        try:
+            read()
+        except Exception:  # cut short by a switch-off this thread left pending: not blocked
+            pass
+        done.set()
 
-        tried, failures = _sweep(src, model, lambda: src.on(60, 250), src.check, between=other_thread_polls)
+    threading.Thread(target=poll, daemon=True).start()
+    if not done.wait(OFF_BOUND_S):
+        return f"another thread's {read.__name__}() waited for what this thread left taken"
+    return None
+
+
+def test_a_stop_in_a_switch_off_leaves_the_link_to_another_thread(dialect):
+    """``off()`` stopped at each of its points in turn, another thread then reads the state (a
+    user's ``status()``): it gets the link at once. Before, a stop landing right after ``off()``
+    took the switch-off's ownership (``_off_thread``), before its ``try``, left it taken: every
+    other thread's exchange waited until this thread switched off again (review s51rv)."""
+    model, server = _source(dialect)
+    with server, L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0) as src:
+        tried, failures = _sweep(
+            src, model, lambda: src.on(60, 250), src.off, between=lambda: _another_thread_reads(src.status)
+        )
     assert len(tried) > 30, len(tried)
     assert not failures, (len(failures), failures[:5])
 
