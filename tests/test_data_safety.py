@@ -1367,6 +1367,23 @@ def test_an_output_whose_name_is_past_the_filesystem_limit_is_one_line(cmd, expe
     no_temporaries(tmp_path)
 
 
+@pytest.mark.parametrize("cmd", ["calibrate", "correct", "register"])
+def test_an_input_whose_name_is_past_the_filesystem_limit_is_named_not_the_output(cmd, experiment, images, tmp_path):
+    """An *input* named past NAME_MAX (300 bytes): the output checks looked it up to compare it with
+    the output (Python 3.11's Path.is_dir and Path.exists raise ENAMETOOLONG), and the line blamed
+    the output, ``out.h5: cannot be written: File name too long`` (review s51rv2). Now the line
+    names the input and what is wrong with it; the output is not made."""
+    long = tmp_path / ("x" * 296 + ".tif")
+    out = tmp_path / "out.h5"
+    args = _commands(experiment if cmd != "calibrate" else long, (long, images[1]), out)[cmd]
+    if cmd == "correct":
+        args[1] = long
+    res = run_cli(*args)
+    line = one_line_error(res, long.name[:40])
+    assert "File name too long" in line and "out.h5" not in line, line
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("stem", ["scan[1]", "a*b?", "[x]"])
 def test_a_killed_runs_temporary_is_found_whatever_its_name(tmp_path, stem):
     """Names with glob characters (``scan[1].h5``) are names, not patterns: the stale temporary

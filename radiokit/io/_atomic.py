@@ -375,7 +375,10 @@ def _check_data_files(path: Path, inputs, folder) -> None:
     from radiokit.io._experiment import IncompleteListingError, data_files  # late: _experiment imports this module
 
     for src in inputs:
-        if not src or Path(src).is_dir():
+        # os.path.isfile: an input whose name cannot even be looked up (past the file system's
+        # NAME_MAX: Path.is_dir raised, and the *output* was said not writable) lists no data
+        # files; its reader says what is wrong with it
+        if not src or not os.path.isfile(src):
             continue
         try:
             listed = data_files(src, allow_external=True)
@@ -432,7 +435,10 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
         src = Path(src)
         if (
             (folder and _inside(src, path))
-            or (not folder and src.exists() and path.exists() and _same(src, path))
+            # os.path.exists: an input whose name cannot even be looked up (longer than the
+            # file system takes) is no file the output could be; its reader says what is wrong
+            # with it (Path.exists raised, and the output was said not writable)
+            or (not folder and os.path.exists(src) and path.exists() and _same(src, path))
             or resolved(src) == resolved(path)
         ):
             raise OutputError(
