@@ -217,21 +217,6 @@ def test_a_stop_at_any_point_of_a_warm_up_leaves_the_tube_to_the_switch_off(dial
     assert not failures, (len(failures), failures[:5])
 
 
-def test_a_stop_in_one_threads_reading_leaves_the_link_to_another_thread(dialect):
-    """A thread polls (a beam monitor's ``check()``) while this thread's own ``check()`` is stopped
-    at each point in turn: the other thread's poll gets the link at once, before this thread asks
-    for it again -- a caller that handles the stop without a switch-off (the tube read off) may
-    never ask again. Before, a stop landing as the link was taken (``_take_turn`` returning) left
-    it taken until then. Then this thread's switch-off confirms, as above."""
-    model, server = _source(dialect)
-    with server, L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0) as src:
-        tried, failures = _sweep(
-            src, model, lambda: src.on(60, 250), src.check, between=lambda: _another_thread_reads(src.check)
-        )
-    assert len(tried) > 30, len(tried)
-    assert not failures, (len(failures), failures[:5])
-
-
 def _another_thread_reads(read):
     """None when ``read()`` in another thread ends within :data:`OFF_BOUND_S`, else why not."""
     done = threading.Event()
@@ -249,15 +234,20 @@ def _another_thread_reads(read):
     return None
 
 
-def test_a_stop_in_a_switch_off_leaves_the_link_to_another_thread(dialect):
-    """``off()`` stopped at each of its points in turn, another thread then reads the state (a
-    user's ``status()``): it gets the link at once. Before, a stop landing right after ``off()``
-    took the switch-off's ownership (``_off_thread``), before its ``try``, left it taken: every
-    other thread's exchange waited until this thread switched off again (review s51rv)."""
+@pytest.mark.parametrize("stopped, other", [("check", "check"), ("off", "status")])
+def test_a_stop_in_one_thread_leaves_the_link_to_another_thread(dialect, stopped, other):
+    """This thread's ``check()`` (or ``off()``) is stopped at each point in turn, then another
+    thread reads (a beam monitor's ``check()``, a user's ``status()``): it gets the link at once,
+    before this thread asks for it again -- a caller that handles the stop without a switch-off
+    (the tube read off) may never ask again. Before, a stop landing as the link was taken
+    (``_take_turn`` returning) left it taken until then, and one landing right after ``off()``
+    took the switch-off's ownership (``_off_thread``), before its ``try``, left that taken (review
+    s51rv). Then this thread's switch-off confirms, as above."""
     model, server = _source(dialect)
     with server, L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0) as src:
+        read = getattr(src, other)
         tried, failures = _sweep(
-            src, model, lambda: src.on(60, 250), src.off, between=lambda: _another_thread_reads(src.status)
+            src, model, lambda: src.on(60, 250), getattr(src, stopped), between=lambda: _another_thread_reads(read)
         )
     assert len(tried) > 30, len(tried)
     assert not failures, (len(failures), failures[:5])
