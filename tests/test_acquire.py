@@ -581,6 +581,21 @@ def _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench):
     return p, sim_devices(p, bench=bench)
 
 
+def _at_frames(model, acts: dict):
+    """A run's ``on_phase`` hook calling ``acts[n]()`` at its n-th frame, and the dict in which it
+    keeps ``n``: the model's log length as the last of them began (what the series sent after)."""
+    seen = {"frames": 0}
+
+    def hook(phase, info):
+        if phase == "frame":
+            seen["frames"] += 1
+            if seen["frames"] in acts:
+                seen["n"] = len(model.log)
+                acts[seen["frames"]]()
+
+    return hook, seen
+
+
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path, scene_toml, bench, dialect):
     """SER is read at most every ERROR_POLL_S: a code that comes up after the last read of a beam
@@ -590,13 +605,7 @@ def test_a_controller_error_in_a_periods_last_second_unvouches_its_tail(tmp_path
     series and labels the frames since the last good SER invalid (review s47rv4)."""
     p, dev = _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench)
     model = dev.emulator
-    seen = {"frames": 0}
-
-    def hook(phase, info):
-        seen["frames"] += phase == "frame"
-        if phase == "frame" and seen["frames"] == 4:  # the step's second frame
-            seen["n"] = len(model.log)
-            model.controller_error(2)
+    hook, seen = _at_frames(model, {4: lambda: model.controller_error(2)})  # the step's second frame
 
     with pytest.raises(SourceFault, match="controller error code 2") as info:
         run(p, devices=dev, progress=False, on_phase=hook)
@@ -630,15 +639,10 @@ def test_a_stop_in_a_beam_period_reads_the_error_code_once_the_tube_is_off(tmp_p
 
     p, dev = _one_step_read_no_ser(tmp_path, scene_toml, dialect, bench)
     model = dev.emulator
-    seen = {"frames": 0}
-
-    def hook(phase, info):
-        seen["frames"] += phase == "frame"
-        if phase == "frame" and seen["frames"] == 4:  # the step's second frame
-            model.controller_error(2)
-        if phase == "frame" and seen["frames"] == 5:  # its last: the stop before the period's end
-            seen["n"] = len(model.log)
-            signal.raise_signal(signal.SIGINT)
+    # the step's second frame; its last: the stop before the period's end
+    hook, seen = _at_frames(
+        model, {4: lambda: model.controller_error(2), 5: lambda: signal.raise_signal(signal.SIGINT)}
+    )
 
     with pytest.raises(StopSignal) as info:
         run(p, devices=dev, progress=False, on_phase=hook)
