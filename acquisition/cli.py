@@ -339,6 +339,12 @@ def _guarded(command, *args) -> int:
             # decided and said: a stop from now until the process exits changes nothing (the
             # series' own command has ignored them since its outcome: _series)
             guard.finish()
+            if code == 0 and guard.acknowledged is not None:
+                # a stop only acknowledged ("please wait": it did not cut the switch-off short):
+                # done, the tube confirmed off, but the operator asked to stop, and 0 let `radiokit
+                # acquire ... && the next command` go on after the Ctrl-C (bash goes on after a
+                # child that handled SIGINT itself): 128 + N, as a stop that raised (review s51rv3)
+                code = 128 + guard.acknowledged
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
@@ -411,16 +417,11 @@ def _series(guard, args, p) -> int:
         f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
         err=False,
     )
-    if guard.acknowledged is not None:
-        # a stop during the closing switch-off, only acknowledged ("please wait": it did not cut
-        # the switch-off short): the series is complete, but the operator asked to stop, and 0
-        # let `acquire ... && the next command` go on after the Ctrl-C (bash goes on after a child
-        # that handled SIGINT itself), as `source probe` did (review s51rv3)
+    if guard.acknowledged is not None:  # a stop during the closing switch-off: 128 + N (_guarded)
         name = signal.Signals(guard.acknowledged).name
         _say(
             f"stopped by {name} during the closing switch-off; all {res.frames_total} frames saved: the series is complete"
         )
-        return _finish(res, 128 + guard.acknowledged, err=False)
     return _finish(res, 0, err=False)
 
 
@@ -804,11 +805,8 @@ def _probe_ends(guard, result, args, state) -> int:
         )
         off = argparse.Namespace(**{**vars(args), "action": "off", "dialect": result.dialect})
         off.baudrate = result.baudrate
-        code = _source_guarded(guard, off)
-        # a stop it only acknowledged: confirmed off, 128 + N as `source off` and `on` stopped in
-        # their switch-off exit (0 said "done": `probe && source on ...` switched X-rays on after
-        # the operator's Ctrl-C); not confirmed, 3 (review s51rv3)
-        return 128 + guard.acknowledged if code == 0 and guard.acknowledged is not None else code
+        # a stop it only acknowledged meanwhile: 128 + N once confirmed off (_guarded)
+        return _source_guarded(guard, off)
     said = state.said if state is not None else "unknown"
     _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
