@@ -42,6 +42,13 @@ def shown(name) -> str:
     return "'" + "".join(escaped) + "'"
 
 
+def linked(name, target=None) -> str:
+    """``name`` as :func:`shown` prints it, and where it is a symbolic link, what it points at:
+    ``ln.h5 (a link to res/out.h5)``, each name quoted alone. Why: the two were quoted as one
+    name, ``'l\\nn.h5 (a link to t.h5)'``, the words "a link to" read as part of it (s52)."""
+    return shown(name) if target is None else f"{shown(name)} (a link to {shown(target)})"
+
+
 def controls_escaped(text) -> str:
     """``text`` with every character that moves or hides text on a terminal, other than
     whitespace, escaped as :func:`shown` escapes it (``\\x1b``, ``\\u202e``), unquoted.
