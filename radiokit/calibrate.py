@@ -1033,7 +1033,7 @@ def _json_attr(path, group, name) -> dict:
         value = strict_json.loads_record(raw.decode() if isinstance(raw, bytes) else raw, f"{group.name}@{name}")
     except (TypeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
-    except strict_json.TooDeep as exc:  # not radiokit's record: its maker can say nothing of it
+    except strict_json.Refused as exc:  # not radiokit's record: its maker can say nothing of it
         raise FormatError(path, f"{exc}: make the calibration again (radiokit calibrate)") from None
     except ValueError as exc:  # a not_finite map naming no null
         raise FormatError(path, str(exc)) from None

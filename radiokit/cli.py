@@ -352,11 +352,14 @@ def _assumed_pitch(src) -> dict:
         return {}
     if meta.get("pixel_size_mm") is not None:
         return {}
+    from radiokit._json import loads_record
+
     text = src.hdf5_attribute(ENTRY, "results_json")
     try:
-        numbers = json.loads(text.decode() if isinstance(text, bytes) else text)
+        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52)
+        numbers = loads_record(text.decode() if isinstance(text, bytes) else text)
         pitch = float(numbers["pixel_size_mm"]) * 1e3
-    except (TypeError, ValueError, KeyError, AttributeError, RecursionError):  # not radiokit's JSON: say nothing
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError):  # not radiokit's JSON: say nothing
         return {}
     if numbers.get("pixel_size_recorded") is not False or not math.isfinite(pitch):
         return {}

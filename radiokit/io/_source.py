@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError, InputErrors, RadiokitError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
@@ -971,8 +972,13 @@ class FrameSource:
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
-                self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
-            except (ValueError, RecursionError):  # free text, however it looks
+                # radiokit's nulled inf/NaN back; past radiokit's depth or length, said and kept as text:
+                # it steers nothing but what is shown of it (s52: 900 levels loaded, and every
+                # caller's json.dumps of the meta recursed past Python's limit)
+                self.meta["description"] = strict_json.loads_record(desc, "its ImageDescription's JSON")
+            except strict_json.Refused as exc:
+                warnings.warn(f"{shown(self.path)}: {exc}: kept as text", UserWarning, stacklevel=4)
+            except ValueError:  # free text, however it looks
                 pass
 
     def _tiff_pixel_size(self, first) -> dict:
@@ -1088,9 +1094,9 @@ class FrameSource:
         if self.format != "tiff" or not self._tif.is_shaped or not self._pages:
             return False
         try:
-            meta = strict_json.loads(self._pages[0].shaped_description or "")
+            meta = strict_json.loads_record(self._pages[0].shaped_description or "")
             shape, axes = meta["shape"], meta.get("axes")
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        except (ValueError, TypeError, KeyError, AttributeError):
             return False
         if not (
             isinstance(axes, str) and isinstance(shape, list) and len(axes) == len(shape) > 2 and axes[-2:] == "YX"
@@ -1813,7 +1819,7 @@ class FrameSource:
         # one nested past json's reach failed the whole file, "cannot be read as hdf5" (s51)
         try:
             prov = strict_json.loads_record(self._h5[CALIBRATION].attrs.get("provenance", "{}"), "provenance")
-        except strict_json.TooDeep as exc:
+        except strict_json.Refused as exc:
             return out | {"provenance_unreadable": str(exc)}
         except (ValueError, TypeError):
             return out | {"provenance_unreadable": "provenance is not JSON text"}
@@ -2188,10 +2194,11 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
         if not desc:
             continue
         try:
-            meta = strict_json.loads(desc)
+            meta = strict_json.loads_record(desc)
             shape = tuple(int(v) for v in meta["shape"])
             axes = str(meta.get("axes") or "")
-        except (ValueError, TypeError, KeyError, AttributeError):  # the older "shape=(...)" form, or damaged
+        # the older "shape=(...)" form, or damaged: nested past radiokit's depth, a shape of 1e999
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
             continue
         if shape[-2:] != tuple(page.shape):  # a description another program left on other pixels
             return []
@@ -2241,10 +2248,10 @@ def _trimmed_description(page) -> tuple[list | None, str | None]:
     where tifffile stored it without its trailing 1s (the page is the shape's last two left),
     else (None, None). Axes naming a samples axis (S) are an image's, also (None, None)."""
     try:
-        meta = strict_json.loads(page.shaped_description or "")
+        meta = strict_json.loads_record(page.shaped_description or "")
         shape = [int(v) for v in meta["shape"]]
         axes = meta.get("axes")
-    except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
         return None, None
     trimmed = list(shape)
     while len(trimmed) > 2 and trimmed[-1] == 1:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
 from radiokit.io._layout import ReadBudget, open_layout, text
@@ -301,19 +303,22 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
                     raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
                 series[name] = budget.read(s)
-        meta = {k: _attr(v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
+        meta = {k: _attr(path, k, v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
         return StackRecord(ds[()], series, meta)  # its bytes were counted first
 
 
-def _attr(value):
+def _attr(path, key, value):
     """An attribute as the writer's ``meta`` gave it: JSON text of a dict or list parsed back
-    (text that does not parse, nested past Python's recursion limit included, stays text)."""
+    (text that does not parse stays text; nested past radiokit's depth too, said: s52, 900
+    levels loaded and a caller's json.dumps of the meta recursed past Python's limit)."""
     if isinstance(value, (bytes, str)):
         value = text(value)
     if isinstance(value, str) and value[:1] in "[{":
         try:
-            return strict_json.loads(value)
-        except (ValueError, RecursionError):
+            return strict_json.loads_record(value, f"/{STACK}@{key}")
+        except strict_json.Refused as exc:
+            warnings.warn(f"{shown(path)}: {exc}: kept as text", UserWarning, stacklevel=3)
+        except ValueError:
             pass
     return value.item() if isinstance(value, np.generic) else value
 
