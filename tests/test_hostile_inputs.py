@@ -2972,7 +2972,7 @@ def test_a_micro_manager_summary_nested_past_radiokit_s_depth_is_refused_in_one_
 
 def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_a_warning(tmp_path):
     """s52: a 12 MB description of 10**6 keys was parsed at every open, 8 times in one
-    ``calibrate`` (12 s, 280 MB, for two 2-frame files). JSON in a file's metadata longer than
+    ``calibrate`` of two 2-frame files. JSON in a file's metadata longer than
     radiokit's rule (radiokit._json.MAX_CHARS; a record of radiokit's is KBs) is not parsed: kept as
     text and said, the pixels read."""
     from radiokit._json import MAX_CHARS
