@@ -451,7 +451,7 @@ def _load_steps(path, progress: bool) -> Steps:
             # every length in mm rests on it (ROI sizes, the crop, the bound's plate gaps): said,
             # and the report says it was assumed (review s41proc: reported as the file's)
             warnings.warn(
-                f"{path}: records no pixel size (x_pixel_size): taking the C7942's {C7942_PIXEL_SIZE_MM:g} mm; "
+                f"{shown(path)}: records no pixel size (x_pixel_size): taking the C7942's {C7942_PIXEL_SIZE_MM:g} mm; "
                 "every length in mm (ROI sizes, the crop) assumes it",
                 UserWarning,
                 stacklevel=2,
@@ -1037,7 +1037,7 @@ def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None
         try:
             s = summary(e.reference, dict(e.images), inclusion, background)
         except ValueError as exc:
-            raise ValueError(f"{source}: {dom.value} domain: {exc}") from None
+            raise ValueError(f"{shown(source)}: {dom.value} domain: {exc}") from None
         per_k = tuple(
             KMeasure(
                 k,

@@ -611,3 +611,25 @@ def test_a_name_holding_a_backslash_prints_apart_from_one_holding_a_control_char
     (tmp_path / literal).write_bytes(b"")
     line = one_line_error(run_cli("info", literal, cwd=tmp_path), "radiokit info: ")
     assert shown(literal) in line and shown(newline) not in line, line
+
+
+def test_the_library_s_own_messages_print_a_file_s_name_as_names_print(tmp_path):
+    """s52: the command line quotes the names it was given wherever a message puts them raw, but
+    a Python caller got the library's raw text: ``ValueError("/x/a\\nb.h5: frames are ...")``, a
+    message of two lines naming no file. The library's messages that open with a user's file name
+    it as names print (radiokit._names.shown)."""
+    from radiokit._names import shown
+    from radiokit.io import StackWriter, open_frames
+
+    name = tmp_path / "a\nb.h5"
+    with ExperimentWriter(name, shape=(4, 5)) as w:
+        w.append(np.zeros((4, 5), np.uint16), image_key=ImageKey.DARK)
+        with pytest.raises(ValueError) as wrong:
+            w.append(np.zeros((3, 5), np.uint16), image_key=ImageKey.DARK)
+    with open_frames(name) as src, pytest.raises(IndexError) as beyond:
+        src[5]
+    with pytest.raises(ValueError) as suffix:
+        StackWriter(tmp_path / "s\x1bt.xyz", (4, 5))
+    for exc, path in ((wrong, name), (beyond, name), (suffix, tmp_path / "s\x1bt.xyz")):
+        text = str(exc.value)
+        assert text.startswith(f"{shown(path)}: ") and "\n" not in text and "\x1b" not in text, text

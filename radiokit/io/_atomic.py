@@ -388,7 +388,7 @@ def _check_data_files(path: Path, inputs, folder) -> None:
             if os.path.lexists(path) and not (folder and path.is_dir() and not any(path.iterdir())):
                 raise OutputError(
                     path,
-                    f"cannot tell whether input {src}'s frames are read from it: {exc.path}: {exc.problem}, "
+                    f"cannot tell whether input {shown(src)}'s frames are read from it: {shown(exc.path)}: {exc.problem}, "
                     "so its links cannot be listed; choose an output that does not exist yet",
                 ) from None
             continue
@@ -396,7 +396,7 @@ def _check_data_files(path: Path, inputs, folder) -> None:
             if _inside(data, path) if folder else _same(data, path):
                 raise OutputError(
                     path,
-                    f"{'holds' if folder else 'is'} {data}, which input {src}'s frames are read from: "
+                    f"{'holds' if folder else 'is'} {shown(data)}, which input {shown(src)}'s frames are read from: "
                     "an input is never overwritten; choose another output",
                 )
 
@@ -424,7 +424,8 @@ def _link_target(path: Path, folder: bool) -> Path:
         raise OutputError(path, "is a symbolic link in a loop (it never reaches a file); choose another output")
     if not target.parent.is_dir():
         raise OutputError(
-            path, f"is a symbolic link to {target}, whose folder {target.parent} does not exist; choose another output"
+            path,
+            f"is a symbolic link to {shown(target)}, whose folder {shown(target.parent)} does not exist; choose another output",
         )
     return target
 
@@ -444,7 +445,7 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
             raise OutputError(
                 path,
                 f"{'holds' if folder and resolved(src) != resolved(path) else 'is'} the "
-                f"input {src}: an input is never overwritten; choose another output",
+                f"input {shown(src)}: an input is never overwritten; choose another output",
             )
     holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
     if holder is not None and not holder.is_dir():
@@ -1084,7 +1085,7 @@ def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
             _publish(old, path, folder=True)
             kept = ""
         except OutputError:  # something took the name in between: the old folder stays aside
-            kept = f"; the previous folder is kept in {old}"
+            kept = f"; the previous folder is kept in {shown(old)}"
         raise OutputError(
             path,
             f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...), added during "
@@ -1097,6 +1098,6 @@ def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
         raise OutputError(
             path,
             f"appeared during the run (another run or program made it meanwhile); it was not replaced and this "
-            f"run's results were discarded; the previous folder is kept in {old}",
+            f"run's results were discarded; the previous folder is kept in {shown(old)}",
             errno.EEXIST,
         ) from None

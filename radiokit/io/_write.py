@@ -103,7 +103,7 @@ class StackWriter:
         self.n = 0
         suffix = self.path.suffix.lower()
         if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
-            raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+            raise ValueError(f"{shown(self.path)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
         frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
         self._atomic = atomic_path(
             self.path,
@@ -174,7 +174,7 @@ class StackWriter:
             return
         mask = np.asarray(mask)
         if mask.shape != self.frame_shape:
-            raise ValueError(f"{self.path}: pixel mask shape {mask.shape} != the frames' {self.frame_shape}")
+            raise ValueError(f"{shown(self.path)}: pixel mask shape {mask.shape} != the frames' {self.frame_shape}")
         instrument = entry.create_group("instrument")
         instrument.attrs["NX_class"] = "NXinstrument"
         detector = instrument.create_group("detector")
@@ -186,7 +186,7 @@ class StackWriter:
     def append(self, frame, **series):
         frame = np.asarray(frame)
         if frame.shape != self.frame_shape:
-            raise ValueError(f"{self.path}: frame shape {frame.shape} != {self.frame_shape}")
+            raise ValueError(f"{shown(self.path)}: frame shape {frame.shape} != {self.frame_shape}")
         if self.kind == "hdf5":
             i = self.n
             if i >= self._ds.shape[0]:
