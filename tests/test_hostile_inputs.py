@@ -2983,3 +2983,52 @@ def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_
     with pytest.warns(UserWarning, match=rf"long\.tif: its ImageDescription's JSON is {len(text)} characters long"):
         f = read(path)
     assert f.data.shape == (2, 4, 5) and "description" not in f.meta
+
+
+# -- TOML a user's file holds (s52) ------------------------------------------------------------------
+DEEP_TOML = {depth: 'name = "block"\nx = ' + "[" * depth + "]" * depth + "\n" for depth in (40, 900, 100_000)}
+
+
+@pytest.mark.parametrize("depth", sorted(DEEP_TOML))
+def test_toml_nested_past_radiokit_s_depth_is_one_line_in_every_command_that_reads_it(depth, tmp_path):
+    """s52: tomllib parses by recursion, three calls a level: a scene or protocol nested 900 deep
+    (or 100 000) ended ``sim run`` and ``acquire`` in a RecursionError traceback, and ``process``
+    too where a simulated file's scene held it. Refused in one line naming the file by the rule
+    JSON has (radiokit._json.MAX_DEPTH: 40 levels parse, and are past it); a simulated file's
+    scene is read as one that is not TOML is (its name unknown, its bound from the background)."""
+    from radiokit.io import read_simulation
+    from radiokit.pipeline import _bound, _scene_view
+
+    toml = tmp_path / "deep.toml"
+    toml.write_text(DEEP_TOML[depth])
+    one_line_error(run_cli("sim", "run", toml, "-o", tmp_path / "sim"), "radiokit sim run: ", "nests deeper than 32")
+    assert not (tmp_path / "sim").exists()
+    res = run_cli("acquire", toml, "--sim", "-o", tmp_path / "acq.h5")
+    assert res.returncode == 2 and "Traceback" not in res.stderr and "nests deeper than 32" in res.stderr, res.stderr
+    assert str(toml) in res.stderr and not (tmp_path / "acq.h5").exists()
+    path = tmp_path / "sim.h5"
+    _experiment(path)
+    _simulation_group_into(path)
+    with h5py.File(path, "a") as h5:
+        h5[S].attrs["scene"] = DEEP_TOML[depth]
+    assert read_simulation(path).scene_name is None
+    truth = {"scene_toml": DEEP_TOML[depth]}
+    assert _scene_view(truth) is None
+    assert _bound(path, [1, 2, 3], truth, 0.1, (1.0, 2.0))[0].basis.startswith("plate gaps not recorded")
+
+
+def test_a_simulated_scene_s_attenuation_past_float_s_range_is_refused_in_one_line(tmp_path):
+    """s52: ``attenuation_per_cm = 999...9`` (400 digits, a TOML integer) was an OverflowError
+    traceback from ``process`` (its improvement factor's bound): refused as any other value that
+    is no positive number."""
+    from radiokit.pipeline import _bound
+
+    path = tmp_path / "sim.h5"
+    _experiment(path)
+    scene = 'name = "block"\n[body.material]\nattenuation_per_cm = ' + "9" * 400
+    _refused(
+        path,
+        lambda: _bound(path, [1, 2, 3], {"scene_toml": scene}, 0.1, (1.0, 2.0)),
+        "attenuation_per_cm",
+        "expected a positive number",
+    )
