@@ -376,7 +376,7 @@ class ExperimentWriter:
             self.previous_kept_in = aside
             warnings.warn(
                 f"{shown(self.path)}: another program made a file under this name meanwhile; the previous series "
-                f"stays in {aside} (rename it to keep it)",
+                f"stays in {shown(aside)} (rename it to keep it)",
                 stacklevel=3,
             )
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -371,12 +372,12 @@ def not_there(path) -> str:
     of a name `ls` lists sent the user looking for a file that is there."""
     path = Path(path)
     if not path.is_symlink():
-        return f"{path.name} is missing"
+        return f"{shown(path.name)} is missing"
     try:
         target = os.readlink(path)
     except OSError:  # (gone between the two looks) as good as missing
-        return f"{path.name} is missing"
-    return f"{path.name} is a symbolic link to {target}, which points nowhere (no file is there)"
+        return f"{shown(path.name)} is missing"
+    return f"{shown(path.name)} is a symbolic link to {shown(target)}, which points nowhere (no file is there)"
 
 
 def _mmstack_files(tif, summary: dict, path=None, check=True) -> list[str] | None:
