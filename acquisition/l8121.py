@@ -87,7 +87,6 @@ import math
 import re
 import threading
 import time
-import tomllib
 from collections.abc import Callable, Iterable, Mapping
 from enum import IntEnum
 from pathlib import Path
@@ -95,7 +94,7 @@ from typing import Any
 
 from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault, WriteTimedOut
 from acquisition.transport import SerialTransport
-from radiokit.checks import is_integer, is_number, shown
+from radiokit.checks import is_integer, is_number, shown, toml_loads
 
 __all__ = [
     "L8121",
@@ -701,7 +700,7 @@ def _toml_section(source: str | Path, section: str) -> dict:
     # a one-line string is a file when it has no "=" or names an existing one (runs/kv=60/source.toml)
     if isinstance(source, Path) or ("\n" not in source and ("=" not in source or names_file(source))):
         text = Path(source).read_text(encoding="utf-8")
-    table: Any = tomllib.loads(text)
+    table: Any = toml_loads(text)
     for part in section.split(".") if section else ():
         if not isinstance(table, dict) or part not in table:
             raise ValueError(f"{source if text is not source else 'TOML text'}: no [{section}] table")

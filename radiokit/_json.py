@@ -17,18 +17,42 @@ import math
 
 import numpy as np
 
-__all__ = ["NOT_FINITE", "MAX_DEPTH", "strict", "dumps", "loads", "loads_record", "restore", "too_deep", "TooDeep"]
+__all__ = [
+    "NOT_FINITE",
+    "MAX_DEPTH",
+    "MAX_CHARS",
+    "strict",
+    "dumps",
+    "loads",
+    "loads_record",
+    "loads_checked",
+    "restore",
+    "too_deep",
+    "Refused",
+    "TooDeep",
+    "TooLong",
+]
 
 #: the top-level key holding the map ``JSON pointer -> "Infinity" | "-Infinity" | "NaN"``
 NOT_FINITE = "not_finite"
 _WORDS = {"Infinity": math.inf, "-Infinity": -math.inf, "NaN": math.nan}
 
-#: The deepest nesting of objects and arrays radiokit reads in a record of its own (a calibration's
-#: provenance nests 3 deep: inputs, one input, its fields). Why a limit: json reads a document up to
-#: Python's recursion limit (about 1000 levels, less the caller's stack), and everything that walks
-#: it afterwards (strict(), json.dumps, str) recursed again from deeper in the stack: a hand-made
-#: provenance 900 deep loaded, then `radiokit correct` died of RecursionError writing it (s51).
+#: The deepest nesting of objects and arrays radiokit reads from any file (:func:`loads_record`):
+#: its own records (a calibration's provenance nests 3 deep: inputs, one input, its fields; a
+#: results.json 4; a corrected stack's description, the provenance within, 4) and other programs'
+#: JSON it reads (tifffile's shape description 2, a Micro-Manager summary a few). Why a limit: json
+#: reads a document up to Python's recursion limit (about 1000 levels, less the caller's stack),
+#: and everything that walks it afterwards (strict(), json.dumps, str) recursed again from deeper
+#: in the stack: a hand-made provenance 900 deep loaded, then `radiokit correct` died of
+#: RecursionError writing it (s51); a results.json's "paper" 900 deep, Results.to_json (s52).
 MAX_DEPTH = 32
+#: The longest JSON text radiokit parses from a file's metadata (:func:`loads_checked`; a
+#: results.json file has its own, larger bound). Its records are KBs: a corrected stack's
+#: description, the calibration's provenance within, lists a time per dark and flat, about 40 KB
+#: for 1000 of each. Why a limit: json builds up to ~25 bytes of Python objects per byte of text
+#: (``[[],[],...``), and a reader parses metadata at each open: a 12 MB description of 10**6 keys
+#: was parsed 8 times by one ``calibrate`` of two files (s52).
+MAX_CHARS = 4 * 2**20
 
 
 def too_deep(value, limit: int = MAX_DEPTH) -> bool:
@@ -90,22 +114,43 @@ def loads(text):
     return restore(json.loads(text))
 
 
-class TooDeep(ValueError):
-    """A record nested past :data:`MAX_DEPTH` levels (:func:`loads_record`)."""
+class Refused(ValueError):
+    """JSON a file holds that radiokit's rule refuses unread or unkept (:func:`loads_checked`):
+    nested too deep (:class:`TooDeep`) or too long (:class:`TooLong`)."""
 
 
-def loads_record(text, where="JSON"):
-    """:func:`loads` of a record radiokit keeps in its files (a calibration's provenance), refused
-    past :data:`MAX_DEPTH` levels: :class:`TooDeep` naming ``where``, whether json could read it (a
-    hand-made one 900 deep) or not (100 000 deep: its RecursionError). Not JSON: json's ValueError."""
-    deep = TooDeep(f"{where} nests deeper than {MAX_DEPTH} levels, which no record of radiokit's does")
+class TooDeep(Refused):
+    """A record nested past :data:`MAX_DEPTH` levels."""
+
+
+class TooLong(Refused):
+    """JSON text longer than its reader's bound (:data:`MAX_CHARS`)."""
+
+
+def loads_record(text, where="JSON", limit=MAX_CHARS):
+    """:func:`loads` of JSON a file holds (a calibration's provenance, a results.json, a TIFF's
+    description, an HDF5 attribute), refused past :data:`MAX_DEPTH` levels: :class:`TooDeep` (a
+    ValueError) naming ``where``, whether json could read it (a hand-made one 900 deep) or not
+    (100 000 deep: its RecursionError). Not JSON: json's ValueError. The one rule for every
+    reader: each decides whether such a file is refused (what it steers) or its JSON ignored."""
+    return restore(loads_checked(text, where, limit), where)
+
+
+def loads_checked(text, where="JSON", limit=MAX_CHARS):
+    """:func:`json.loads` refused (:class:`Refused`, naming ``where``) past ``limit`` characters,
+    unparsed (:class:`TooLong`), or past :data:`MAX_DEPTH` levels (:class:`TooDeep`), the numbers
+    left as the text gives them: :func:`loads_record` less :func:`restore`, for a reader that puts
+    them back itself (``results.Results.from_json``)."""
+    if text is not None and len(text) > limit:
+        raise TooLong(f"{where} is {len(text)} characters long, past the {limit} radiokit reads")
+    deep = TooDeep(f"{where} nests deeper than {MAX_DEPTH} levels, past any JSON radiokit reads")
     try:
         value = json.loads(text)
     except RecursionError:
         raise deep from None
     if too_deep(value):
         raise deep
-    return restore(value, where)
+    return value
 
 
 def restore(value, where="JSON"):

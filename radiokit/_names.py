@@ -13,18 +13,21 @@ _HIDING = ("Cc", "Cf", "Zl", "Zp")
 
 def shown(name) -> str:
     """``name`` (a file's, or any text naming one) as a message prints it: as it is, unless it
-    holds a control character (a newline, an escape, a bidirectional override), then quoted and
-    escaped as Python's ``repr`` writes it, ``'out\\nx.h5'``.
+    holds a control character (a newline, an escape, a bidirectional override) or a backslash,
+    then quoted and escaped as Python's ``repr`` writes it, ``'out\\nx.h5'``: it reads back
+    (``ast.literal_eval``) as the name.
 
     Why: an output named ``"out\\nx.h5"`` was printed raw, ``-> out`` on one line and ``x.h5`` on
     the next, so the name a user read was not the file's, and an escape sequence in a name
-    reached the terminal. Quoted only then: every plain name stays as the user typed it.
+    reached the terminal. The backslash too (s52): a file literally named ``a\\nb.tif`` printed
+    as the one holding a newline does inside a message's own quotes. Quoted only then: every plain
+    name stays as the user typed it, and one printed unquoted holds no backslash, so no escape.
 
-    >>> shown("cal.h5"), shown("cal\\nx.h5")
-    ('cal.h5', "'cal\\\\nx.h5'")
+    >>> shown("cal.h5"), shown("cal\\nx.h5"), shown("cal\\\\nx.h5")
+    ('cal.h5', "'cal\\\\nx.h5'", "'cal\\\\\\\\nx.h5'")
     """
     text = str(name)
-    if not any(unicodedata.category(c) in _HIDING for c in text):
+    if "\\" not in text and not any(unicodedata.category(c) in _HIDING for c in text):
         return text
     escaped = (
         "\\\\"
@@ -37,6 +40,13 @@ def shown(name) -> str:
         for c in text
     )
     return "'" + "".join(escaped) + "'"
+
+
+def linked(name, target=None) -> str:
+    """``name`` as :func:`shown` prints it, and where it is a symbolic link, what it points at:
+    ``ln.h5 (a link to res/out.h5)``, each name quoted alone. Why: the two were quoted as one
+    name, ``'l\\nn.h5 (a link to t.h5)'``, the words "a link to" read as part of it (s52)."""
+    return shown(name) if target is None else f"{shown(name)} (a link to {shown(target)})"
 
 
 def controls_escaped(text) -> str:

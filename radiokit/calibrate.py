@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit._version import __version__
 from radiokit.checks import is_number, refuse_masked
 from radiokit.errors import FormatError
@@ -997,8 +998,8 @@ def _check_numbers(path, group, provenance: dict) -> None:
     silence; ``"200"``, a string, was a TypeError traceback)."""
     c = group.attrs.get("c", np.nan)
     if not is_number(c) or float(c) <= 0 or np.isinf(c):  # NaN: not recorded, computed again
-        shown = c.item() if isinstance(c, np.generic) else c
-        raise FormatError(path, f"{group.name}@c is {shown!r}: expected a positive finite number of counts")
+        value = c.item() if isinstance(c, np.generic) else c
+        raise FormatError(path, f"{group.name}@c is {value!r}: expected a positive finite number of counts")
     for key, unit in _PROVENANCE_NUMBERS.items():
         value = provenance.get(key)
         if value is not None and not is_number(value):
@@ -1033,7 +1034,7 @@ def _json_attr(path, group, name) -> dict:
         value = strict_json.loads_record(raw.decode() if isinstance(raw, bytes) else raw, f"{group.name}@{name}")
     except (TypeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FormatError(path, f"{group.name}@{name} is not JSON text: {type(exc).__name__}") from None
-    except strict_json.TooDeep as exc:  # not radiokit's record: its maker can say nothing of it
+    except strict_json.Refused as exc:  # not radiokit's record: its maker can say nothing of it
         raise FormatError(path, f"{exc}: make the calibration again (radiokit calibrate)") from None
     except ValueError as exc:  # a not_finite map naming no null
         raise FormatError(path, str(exc)) from None
@@ -1104,7 +1105,7 @@ def exposure_factors(cal: Calibration, meta: dict, path, frames) -> np.ndarray:
         off = np.isfinite(kv) & (np.abs(kv - flat_kv) > 0.01 * flat_kv)
         if off.any():
             warnings.warn(
-                f"{path}: {int(off.sum())} frame(s) at {np.unique(np.round(kv[off], 1)).tolist()} kV, the flats at "
+                f"{shown(path)}: {int(off.sum())} frame(s) at {np.unique(np.round(kv[off], 1)).tolist()} kV, the flats at "
                 f"{flat_kv:.1f} kV: their transmission is not the object's alone (no factor corrects a spectrum); "
                 "take flats at the projections' voltage",
                 CalibrationWarning,
@@ -1716,7 +1717,7 @@ def _merge_recorded_mask(cal: Calibration, path, recorded) -> None:
     where = f"its pixel_mask {m.shape} {m.dtype}"
     if m.shape != cal.shape:
         warnings.warn(
-            f"{path}: {where} does not match the frames ({cal.shape[0]}x{cal.shape[1]}): not used",
+            f"{shown(path)}: {where} does not match the frames ({cal.shape[0]}x{cal.shape[1]}): not used",
             CalibrationWarning,
             stacklevel=3,
         )

@@ -15,7 +15,7 @@ import numbers
 import os
 import sys
 
-__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar", "shown"]
+__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar", "shown", "toml_loads"]
 
 
 def is_number(value) -> bool:
@@ -142,3 +142,25 @@ def refuse_masked(value, name: str, mask_keyword: str | None = None) -> None:
     raise ValueError(
         f"{name} is a masked array, whose mask would be ignored: pass a plain array (its .filled(value)){how}"
     )
+
+
+def toml_loads(text: str) -> dict:
+    """:func:`tomllib.loads` of a user's TOML (a scene, a protocol, a simulated file's scene), a
+    document nested past :data:`radiokit._json.MAX_DEPTH` levels, the rule JSON has, refused as
+    :class:`tomllib.TOMLDecodeError`, which each reader already words as its file's error.
+
+    Why: :mod:`tomllib` parses by recursion, about three calls a level of arrays or inline
+    tables, so a file nested a few hundred deep raised RecursionError, which no reader's ``except
+    TOMLDecodeError`` caught: ``sim run``, ``acquire`` and ``process`` ended in a traceback (s52)."""
+    import tomllib
+
+    from radiokit._json import MAX_DEPTH, too_deep  # late: numpy, which this module does without
+
+    deep = tomllib.TOMLDecodeError(f"nests deeper than {MAX_DEPTH} levels, past any TOML radiokit reads")
+    try:
+        value = tomllib.loads(text)
+    except RecursionError:
+        raise deep from None
+    if too_deep(value):
+        raise deep
+    return value

@@ -352,11 +352,14 @@ def _assumed_pitch(src) -> dict:
         return {}
     if meta.get("pixel_size_mm") is not None:
         return {}
+    from radiokit._json import loads_record
+
     text = src.hdf5_attribute(ENTRY, "results_json")
     try:
-        numbers = json.loads(text.decode() if isinstance(text, bytes) else text)
+        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52)
+        numbers = loads_record(text.decode() if isinstance(text, bytes) else text)
         pitch = float(numbers["pixel_size_mm"]) * 1e3
-    except (TypeError, ValueError, KeyError, AttributeError, RecursionError):  # not radiokit's JSON: say nothing
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError):  # not radiokit's JSON: say nothing
         return {}
     if numbers.get("pixel_size_recorded") is not False or not math.isfinite(pitch):
         return {}
@@ -2131,10 +2134,17 @@ def _names_shown(text: str, names) -> str:
     file however its writer chose, and the one line folds a raw newline into a space, ``a b.tif``,
     naming no file (s51); the command line's own messages use ``shown``, and this holds the rule
     for every other line a command prints of its files (the library's errors and warnings).
-    Longest first: a name inside a longer one is not split (the quoted form holds no raw control)."""
-    for name in sorted({n for n in names if shown(n) != n}, key=len, reverse=True):
-        text = text.replace(name, shown(name))
-    return text
+    Longest first: a name inside a longer one is not split; a name the message already printed
+    as names print is left so (a name's backslash is in its quoted form too: ``'x\\\\'`` holds
+    ``x\\``, and a second pass quoted it again, s52)."""
+    import re
+
+    quoted = {n: shown(n) for n in names if shown(n) != n}
+    if not quoted:
+        return text
+    forms = {form: form for form in quoted.values()} | quoted  # at one place, a quoted form comes first
+    pattern = "|".join(re.escape(f) for f in sorted(forms, key=len, reverse=True))
+    return re.sub(pattern, lambda m: forms[m.group(0)], text)
 
 
 def _one_line(text: str, names=()) -> str:

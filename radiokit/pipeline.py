@@ -68,7 +68,7 @@ import numpy as np
 
 from radiokit._json import strict as strict_json
 from radiokit._names import shown
-from radiokit.checks import is_number, scalar
+from radiokit.checks import is_number, scalar, toml_loads
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError, RadiokitError
 from radiokit.interrupts import STOP_SIGNALS, deferred
@@ -451,7 +451,7 @@ def _load_steps(path, progress: bool) -> Steps:
             # every length in mm rests on it (ROI sizes, the crop, the bound's plate gaps): said,
             # and the report says it was assumed (review s41proc: reported as the file's)
             warnings.warn(
-                f"{path}: records no pixel size (x_pixel_size): taking the C7942's {C7942_PIXEL_SIZE_MM:g} mm; "
+                f"{shown(path)}: records no pixel size (x_pixel_size): taking the C7942's {C7942_PIXEL_SIZE_MM:g} mm; "
                 "every length in mm (ROI sizes, the crop) assumes it",
                 UserWarning,
                 stacklevel=2,
@@ -766,7 +766,7 @@ def _scene_view(truth) -> str | None:
 
     scene_text = truth.get("scene_toml") if truth else None
     try:
-        beam = tomllib.loads(scene_text).get("beam", {}) if scene_text else None
+        beam = toml_loads(scene_text).get("beam", {}) if scene_text else None
     except tomllib.TOMLDecodeError:
         return None
     if not isinstance(beam, dict):
@@ -792,7 +792,7 @@ def _bound(path, numbers, truth, bg_log_mean, ks, view=None) -> tuple[Bound, dic
     caveat = ""
     if scene_text:
         try:
-            sc = tomllib.loads(scene_text)
+            sc = toml_loads(scene_text)
             mu = sc["body"]["material"]["attenuation_per_cm"]
         except (tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
             mu = None
@@ -810,7 +810,11 @@ def _bound(path, numbers, truth, bg_log_mean, ks, view=None) -> tuple[Bound, dic
             )
         if mu is not None:
             # TOML's `true` is Python's 1: float() took it for 1/cm, and "0.3" or nan too, a wrong bound in silence
-            if not is_number(mu) or not (math.isfinite(mu) and mu > 0):
+            try:
+                positive = is_number(mu) and math.isfinite(float(mu)) and mu > 0
+            except OverflowError:  # a TOML integer past float's range (10**400): a traceback (s52)
+                positive = False
+            if not positive:
                 raise FormatError(
                     path,
                     f"simulation truth: scene body.material.attenuation_per_cm = {json.dumps(mu)}: "
@@ -1037,7 +1041,7 @@ def measure_domains(enhanced: dict, inclusion: ROI, background: ROI, bounds=None
         try:
             s = summary(e.reference, dict(e.images), inclusion, background)
         except ValueError as exc:
-            raise ValueError(f"{source}: {dom.value} domain: {exc}") from None
+            raise ValueError(f"{shown(source)}: {dom.value} domain: {exc}") from None
         per_k = tuple(
             KMeasure(
                 k,

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radiokit._json import restore, strict
+from radiokit._json import Refused, loads_checked, restore, strict
 from radiokit.checks import is_integer, is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
@@ -560,14 +560,17 @@ def load_results(path) -> Results:
         size = path.stat().st_size
         if size > MAX_JSON_BYTES:
             raise FormatError(path, f"is {size / 1e9:.1f} GB; a results.json is at most {MAX_JSON_BYTES >> 20} MiB")
-        data = json.loads(path.read_bytes().decode("utf-8"))
+        # past radiokit's depth (radiokit._json): one 900 deep loaded, and to_json recursed past
+        # Python's limit (s52). from_json puts back the not_finite numbers, naming the file
+        data = loads_checked(path.read_bytes().decode("utf-8"), "results.json", MAX_JSON_BYTES)
     except OSError as exc:
         raise FormatError(path, f"cannot be read: {exc.strerror or exc}") from None
-    except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+    except Refused as exc:
+        raise FormatError(path, f"not a results.json: {exc}") from None
+    except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
         if isinstance(exc, FormatError):
             raise
-        what = "nested too deeply" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
-        raise FormatError(path, f"not a results.json: not UTF-8 JSON ({what})") from None
+        raise FormatError(path, f"not a results.json: not UTF-8 JSON ({' '.join(str(exc).split())[:200]})") from None
     try:
         return Results.from_json(data, str(path))
     except (KeyError, TypeError, ValueError, AttributeError, RecursionError) as exc:

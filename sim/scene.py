@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from radiokit.checks import is_integer, is_number
+from radiokit.checks import is_integer, is_number, toml_loads
 
 __all__ = [
     "Material",
@@ -660,7 +660,7 @@ class Scene:
     @classmethod
     def from_toml(cls, text: str) -> Scene:
         try:
-            return cls.from_dict(tomllib.loads(text))
+            return cls.from_dict(toml_loads(text))
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"scene TOML: {exc}") from exc
 

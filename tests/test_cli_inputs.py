@@ -587,3 +587,49 @@ def test_dataset_beside_a_fifo_is_refused_not_waited_on(tmp_path):
         capture_output=True, text=True, timeout=30,
     )  # fmt: skip
     one_line_error(res, "p.tif", "not a regular file")
+
+
+def test_a_name_holding_a_backslash_prints_apart_from_one_holding_a_control_character(tmp_path):
+    """s52: a file literally named ``a\\nb.tif`` (a backslash, then n) printed ``a\\nb.tif``, and
+    ``'a\\nb.tif'`` quoted inside any quotes of a message's own, as the name holding a real newline
+    prints: two files, one text. A backslash is escaped and the name quoted as Python's ``repr``
+    writes it, so that every printed name reads back (``ast.literal_eval``) as its file's name."""
+    import ast
+
+    from radiokit._names import shown
+    from radiokit.cli import _error_line
+
+    literal, newline = "a\\nb.tif", "a\nb.tif"
+    for name in (literal, newline, "x\\", "'q\\'", "c\\x1b.tif", "plain 'quoted' name.h5", "cal.h5"):
+        assert ast.literal_eval(shown(name)) == name if shown(name) != name else "\\" not in name, shown(name)
+    assert shown(literal) != shown(newline)
+    assert shown("cal.h5") == "cal.h5" and shown("it's.h5") == "it's.h5"  # plain names as typed
+    # the command line's net leaves a name its message already printed as names print alone
+    for name in (literal, "x\\", newline):
+        line = _error_line("info", ValueError(f"{shown(name)}: no such file; {name} again"), [name])
+        assert line == f"radiokit info: {shown(name)}: no such file; {shown(name)} again", line
+    (tmp_path / literal).write_bytes(b"")
+    line = one_line_error(run_cli("info", literal, cwd=tmp_path), "radiokit info: ")
+    assert shown(literal) in line and shown(newline) not in line, line
+
+
+def test_the_library_s_own_messages_print_a_file_s_name_as_names_print(tmp_path):
+    """s52: the command line quotes the names it was given wherever a message puts them raw, but
+    a Python caller got the library's raw text: ``ValueError("/x/a\\nb.h5: frames are ...")``, a
+    message of two lines naming no file. The library's messages that open with a user's file name
+    it as names print (radiokit._names.shown)."""
+    from radiokit._names import shown
+    from radiokit.io import StackWriter, open_frames
+
+    name = tmp_path / "a\nb.h5"
+    with ExperimentWriter(name, shape=(4, 5)) as w:
+        w.append(np.zeros((4, 5), np.uint16), image_key=ImageKey.DARK)
+        with pytest.raises(ValueError) as wrong:
+            w.append(np.zeros((3, 5), np.uint16), image_key=ImageKey.DARK)
+    with open_frames(name) as src, pytest.raises(IndexError) as beyond:
+        src[5]
+    with pytest.raises(ValueError) as suffix:
+        StackWriter(tmp_path / "s\x1bt.xyz", (4, 5))
+    for exc, path in ((wrong, name), (beyond, name), (suffix, tmp_path / "s\x1bt.xyz")):
+        text = str(exc.value)
+        assert text.startswith(f"{shown(path)}: ") and "\n" not in text and "\x1b" not in text, text

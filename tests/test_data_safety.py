@@ -1237,6 +1237,34 @@ def test_a_results_folder_kept_aside_is_pointed_to_by_the_link_the_user_named(tm
     assert str(refused.value).startswith(f"{link} (a link to {out}): ") and again.name in str(refused.value)
 
 
+def test_a_link_and_its_target_are_each_quoted_as_names_print(tmp_path, monkeypatch):
+    """s52: a refusal naming a link and its target quoted the two as one name, ``'l\\nn.h5 (a link
+    to t.h5)'``: the words "a link to" inside the quotes, read as part of a file's name. Each
+    name as names print (radiokit._names.shown), the words between them outside the quotes."""
+    from radiokit._names import shown
+    from radiokit.io._atomic import OutputError, OutputExistsError, check_output
+
+    target, link = tmp_path / "t\\x.h5", tmp_path / "l\nn.h5"
+    target.write_bytes(b"data")
+    link.symlink_to(target)
+    with pytest.raises(OutputExistsError) as refused:
+        check_output(link)
+    assert str(refused.value).startswith(f"{shown(link)} (a link to {shown(target)}): exists;"), str(refused.value)
+    out, named = tmp_path / "r\\es", tmp_path / "lat\nest"
+    _results_folder(out)
+    named.symlink_to(out)
+    _left_aside(out, monkeypatch)
+    with pytest.warns(UserWarning) as caught:
+        check_output(named, overwrite=True, folder=True)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith(f"{shown(named)} (a link to {shown(out)}): "), message
+    shutil.rmtree(out)
+    _left_aside(out, monkeypatch)
+    with pytest.raises(OutputError) as refused:
+        check_output(named, overwrite=True, folder=True)
+    assert str(refused.value).startswith(f"{shown(named)} (a link to {shown(out)}): is missing"), str(refused.value)
+
+
 @pytest.mark.parametrize("stem", ["r" * 240, "\u7a7a" * 80], ids=["ascii", "3-byte"])
 def test_outputs_alike_in_their_first_bytes_never_take_each_others_results_left_aside(tmp_path, monkeypatch, stem):
     """s39 review (LOW): the name of a folder left aside is cut to fit NAME_MAX, so two outputs

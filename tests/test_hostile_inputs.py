@@ -1390,13 +1390,19 @@ def test_text_attributes_that_are_not_utf8_are_read_replaced(layout, group, key,
     text.encode("utf-8")  # printable: no lone surrogates
 
 
-def test_a_stack_attribute_nested_past_the_recursion_limit_stays_text(tmp_path):
+@pytest.mark.parametrize("depth", [900, 100_000])
+def test_a_stack_attribute_nested_past_radiokit_s_depth_stays_text(depth, tmp_path):
+    """Past what json reads (100 000 levels), and within it but past what radiokit's records nest
+    (900: it loaded, and a caller's json.dumps of the meta died of RecursionError, s52): the
+    attribute is kept as its text, with a warning naming the file, the attribute and the rule."""
     path = tmp_path / "stack.h5"
     _stack_file(path)
-    bomb = "[" * 100_000 + "]" * 100_000
+    bomb = "[" * depth + "]" * depth
     with h5py.File(path, "a") as h5:
         h5["entry/data"].attrs["cal"] = bomb
-    assert read_stack(path).meta["cal"] == bomb
+    with pytest.warns(UserWarning, match=r"stack\.h5: .*cal.* nests deeper than 32 levels.*kept as text"):
+        meta = read_stack(path).meta
+    assert meta["cal"] == bomb and meta["source"] == "exp.h5"
 
 
 @pytest.mark.parametrize(
@@ -1554,6 +1560,18 @@ def test_load_results_refuses_a_bad_results_json_in_one_line(case, tmp_path):
     else:
         path.write_text(_json_case(case))
     _refused(path, lambda: load_results(path))
+
+
+@pytest.mark.parametrize("field", ["paper", "timings", "unknown"])
+def test_load_results_refuses_a_field_nested_past_radiokit_s_depth(field, tmp_path):
+    """s52: a results.json whose "paper" or "timings" nested 900 levels (within what json reads)
+    loaded, and writing its numbers again (Results.to_json, strict JSON) died of RecursionError.
+    Refused as the calibration's provenance is (radiokit._json.MAX_DEPTH), whatever the key."""
+    d = _results_json()
+    d[field] = json.loads('{"a": ' + "[" * 900 + "]" * 900 + "}")
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(d))
+    _refused(path, lambda: load_results(path), "nests deeper than 32 levels")
 
 
 def test_load_results_reads_a_future_minor_version_and_ignores_keys_it_does_not_know(tmp_path):
@@ -2863,3 +2881,154 @@ def test_process_of_counts_scaled_by_1e20_gives_the_unscaled_results_without_war
             assert b["improvement_factor"]["1"] == pytest.approx(a["improvement_factor"]["1"], rel=1e-4), domain
             assert b["cnr"]["1"] == pytest.approx(a["cnr"]["1"], rel=1e-4), domain
             assert b["cnr_reference"] == pytest.approx(a["cnr_reference"], rel=1e-4), domain
+
+
+# -- JSON in a file's metadata (s52) -----------------------------------------------------------------
+DEEP_JSON = {depth: '{"domain": "log", "x": ' + "[" * depth + "]" * depth + "}" for depth in (900, 100_000)}
+
+
+@pytest.mark.parametrize("depth", sorted(DEEP_JSON))
+def test_a_tiff_description_nested_past_radiokit_s_depth_is_kept_as_text_with_a_warning(depth, tmp_path):
+    """The ImageDescription radiokit's writer fills with a stack's meta steers nothing but what
+    is shown of it (info's domain line; ``meta["description"]``): JSON nested past radiokit's
+    depth (900 levels json reads and the meta's every walker recursed into; 100 000 it cannot)
+    is kept as text and said, the pixels read. Every command that reads the file: info here."""
+    path = tmp_path / "deep.tif"
+    frames = np.arange(3 * 4 * 5, dtype=np.uint16).reshape(3, 4, 5)
+    tifffile.imwrite(path, frames, description=DEEP_JSON[depth], metadata=None, photometric="minisblack")
+    res = run("info", "--json", path, env={"PYTHONWARNINGS": "default"})  # its own process: run_cli hides warnings
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert json.loads(res.stdout)[0]["frames"] == 3
+    (line,) = res.stderr.splitlines()
+    assert str(path) in line and "nests deeper than 32 levels" in line, line
+    with pytest.warns(UserWarning, match=r"deep\.tif: its ImageDescription's JSON nests deeper than 32 levels"):
+        f = read(path)
+    np.testing.assert_array_equal(f.data, frames)
+    assert "description" not in f.meta and f.meta["tags"]["ImageDescription"] == DEEP_JSON[depth]
+
+
+@pytest.mark.parametrize(
+    "description",
+    [
+        '{"shape": [3, 4, 5], "axes": "ZYX", "x": ' + "[" * 100_000 + "]" * 100_000 + "}",
+        '{"shape": [1e999, 4, 5], "axes": "ZYX"}',
+        '{"shape": [NaN, 4, 5], "axes": "ZYX"}',
+        '{"shape": [' + "9" * 5000 + ", 4, 5]}",
+    ],
+    ids=["deep", "inf", "nan", "5000 digits"],
+)
+def test_a_damaged_tifffile_shape_description_is_not_read_and_the_pages_are(description, tmp_path):
+    """tifffile's JSON description (its shape and axes) steers how pages are frames; a damaged
+    one is not read, as before, whatever the damage: one nested past what json reads, or a shape
+    of infinity, ended "cannot be read as tiff: maximum recursion depth exceeded ..." / "cannot
+    convert float infinity to integer" (s52)."""
+    path = tmp_path / "shaped.tif"
+    frames = np.arange(3 * 4 * 5, dtype=np.uint16).reshape(3, 4, 5)
+    tifffile.imwrite(path, frames, description=description, metadata=None, photometric="minisblack")
+    np.testing.assert_array_equal(read(path).data, frames)
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "Traceback" not in res.stderr and "3 x 4 rows x 5 cols" in res.stdout, res
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"pixel_size_mm": ' + "9" * 400 + ', "pixel_size_recorded": false}',
+        '{"pixel_size_mm": 0.05, "pixel_size_recorded": false, "x": ' + "[" * 900 + "]" * 900 + "}",
+        "[" * 100_000 + "]" * 100_000,
+    ],
+    ids=["10**400", "deep", "past json"],
+)
+def test_info_on_results_whose_embedded_json_is_hostile_describes_the_frames(text, tmp_path):
+    """``info`` reads a results.h5's @results_json for one line (a pitch the run assumed): a
+    number past float's range was an OverflowError traceback (s52); JSON past radiokit's depth is
+    no record of radiokit's. Nothing is said of it; the frames are described."""
+    path = tmp_path / "results.h5"
+    _results_file(path)
+    with h5py.File(path, "a") as h5:
+        h5["entry"].attrs["results_json"] = text
+    res = run_cli("info", path)
+    assert res.returncode == 0 and res.stderr == "" and "2 x 4 rows x 5 cols" in res.stdout, res
+    assert "pixel_size" not in res.stdout, res.stdout
+
+
+@pytest.mark.parametrize("depth", [900, 100_000])
+def test_a_micro_manager_summary_nested_past_radiokit_s_depth_is_refused_in_one_line(depth, tmp_path):
+    """A Micro-Manager summary steers which planes are frames and in what order: nested past
+    radiokit's depth it is refused, naming the file and the summary. 100 000 levels, which
+    tifffile's own json.loads cannot read, ended "cannot be read as tiff: maximum recursion depth
+    exceeded while decoding a JSON array from a unicode string" (s52)."""
+    from tests.test_io_formats import _frames, _mmstack_file
+
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    summary = '{"MicroManagerVersion": "2.0.0", "Frames": 2, "x": ' + "[" * depth + "]" * depth + "}"
+    real_dumps = json.dumps
+    with pytest.MonkeyPatch.context() as m:  # the helper writes the summary json.dumps gives it
+        m.setattr(json, "dumps", lambda v, *a, **k: summary if "MicroManagerVersion" in v else real_dumps(v, *a, **k))
+        _mmstack_file(path, _frames(2), 0, 2)
+    _refused(path, lambda: read(path), "Micro-Manager summary nests deeper than 32 levels")
+    one_line_error(run_cli("info", path), str(path), "Micro-Manager summary nests deeper than 32 levels")
+
+
+def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_a_warning(tmp_path):
+    """s52: a 12 MB description of 10**6 keys was parsed at every open, 8 times in one
+    ``calibrate`` of two 2-frame files. JSON in a file's metadata longer than
+    radiokit's rule (radiokit._json.MAX_CHARS; a record of radiokit's is KBs) is not parsed: kept as
+    text and said, the pixels read."""
+    from radiokit._json import MAX_CHARS
+
+    path = tmp_path / "long.tif"
+    text = '{"domain": "log", "k": [' + "0," * (MAX_CHARS // 2) + "0]}"
+    tifffile.imwrite(path, np.ones((2, 4, 5), np.uint16), description=text, metadata=None, photometric="minisblack")
+    with pytest.warns(UserWarning, match=rf"long\.tif: its ImageDescription's JSON is {len(text)} characters long"):
+        f = read(path)
+    assert f.data.shape == (2, 4, 5) and "description" not in f.meta
+
+
+# -- TOML a user's file holds (s52) ------------------------------------------------------------------
+DEEP_TOML = {depth: 'name = "block"\nx = ' + "[" * depth + "]" * depth + "\n" for depth in (40, 900, 100_000)}
+
+
+@pytest.mark.parametrize("depth", sorted(DEEP_TOML))
+def test_toml_nested_past_radiokit_s_depth_is_one_line_in_every_command_that_reads_it(depth, tmp_path):
+    """s52: tomllib parses by recursion, three calls a level: a scene or protocol nested 900 deep
+    (or 100 000) ended ``sim run`` and ``acquire`` in a RecursionError traceback, and ``process``
+    too where a simulated file's scene held it. Refused in one line naming the file by the rule
+    JSON has (radiokit._json.MAX_DEPTH: 40 levels parse, and are past it); a simulated file's
+    scene is read as one that is not TOML is (its name unknown, its bound from the background)."""
+    from radiokit.io import read_simulation
+    from radiokit.pipeline import _bound, _scene_view
+
+    toml = tmp_path / "deep.toml"
+    toml.write_text(DEEP_TOML[depth])
+    one_line_error(run_cli("sim", "run", toml, "-o", tmp_path / "sim"), "radiokit sim run: ", "nests deeper than 32")
+    assert not (tmp_path / "sim").exists()
+    res = run_cli("acquire", toml, "--sim", "-o", tmp_path / "acq.h5")
+    assert res.returncode == 2 and "Traceback" not in res.stderr and "nests deeper than 32" in res.stderr, res.stderr
+    assert str(toml) in res.stderr and not (tmp_path / "acq.h5").exists()
+    path = tmp_path / "sim.h5"
+    _experiment(path)
+    _simulation_group_into(path)
+    with h5py.File(path, "a") as h5:
+        h5[S].attrs["scene"] = DEEP_TOML[depth]
+    assert read_simulation(path).scene_name is None
+    truth = {"scene_toml": DEEP_TOML[depth]}
+    assert _scene_view(truth) is None
+    assert _bound(path, [1, 2, 3], truth, 0.1, (1.0, 2.0))[0].basis.startswith("plate gaps not recorded")
+
+
+def test_a_simulated_scene_s_attenuation_past_float_s_range_is_refused_in_one_line(tmp_path):
+    """s52: ``attenuation_per_cm = 999...9`` (400 digits, a TOML integer) was an OverflowError
+    traceback from ``process`` (its improvement factor's bound): refused as any other value that
+    is no positive number."""
+    from radiokit.pipeline import _bound
+
+    path = tmp_path / "sim.h5"
+    _experiment(path)
+    scene = 'name = "block"\n[body.material]\nattenuation_per_cm = ' + "9" * 400
+    _refused(
+        path,
+        lambda: _bound(path, [1, 2, 3], {"scene_toml": scene}, 0.1, (1.0, 2.0)),
+        "attenuation_per_cm",
+        "expected a positive number",
+    )

@@ -1269,7 +1269,8 @@ def test_tiff_description_nested_past_the_recursion_limit_stays_text(tmp_path):
     path = tmp_path / "deep.tif"
     text = '{"a":' + "[" * 100_000 + "]" * 100_000 + "}"
     tifffile.imwrite(path, np.ones((4, 5), np.uint16), description=text, metadata=None)
-    f = read(path)
+    with pytest.warns(UserWarning, match=r"deep\.tif: its ImageDescription's JSON nests deeper than 32 levels"):
+        f = read(path)
     assert f.data.shape == (1, 4, 5) and f.meta["tags"]["ImageDescription"] == text
     assert "description" not in f.meta
 

@@ -83,7 +83,7 @@ import numpy as np
 import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
-from radiokit.checks import is_integer, is_number, shown
+from radiokit.checks import is_integer, is_number, shown, toml_loads
 
 __all__ = [
     "Protocol",
@@ -516,7 +516,7 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
             except OSError as exc:
                 raise ProtocolError(f"{where}: cannot read the protocol ({exc.strerror or exc})") from None
         try:
-            data = tomllib.loads(text_)
+            data = toml_loads(text_)
         except tomllib.TOMLDecodeError as exc:
             raise ProtocolError(f"{where}: not valid TOML: {exc}") from None
         if not data:  # an empty file ran every default exposure and series, as a typo must not

@@ -33,6 +33,7 @@ import stat
 import warnings
 from pathlib import Path
 
+from radiokit._names import linked, shown
 from radiokit.errors import RadiokitError
 from radiokit.interrupts import held, settle
 
@@ -108,14 +109,13 @@ def _made_by(folder: Path) -> str | None:
 class OutputError(RadiokitError, OSError):
     """An output cannot be written where asked (it is an input, or not radiokit's to replace)."""
 
-    def __init__(self, path, problem, err=errno.EINVAL):
-        self.path, self.problem = str(path), problem
+    def __init__(self, path, problem, err=errno.EINVAL, *, target=None):
+        # target: what ``path``, a symbolic link the user named, points at (named beside it)
+        self.path, self.problem, self.target = str(path), problem, None if target is None else str(target)
         OSError.__init__(self, err, problem)
 
     def __str__(self):
-        from radiokit._names import shown
-
-        return f"{shown(self.path)}: {self.problem}"
+        return f"{linked(self.path, self.target)}: {self.problem}"
 
 
 class OutputExistsError(OutputError, FileExistsError):
@@ -355,7 +355,7 @@ def check_output(path, *, overwrite=False, inputs=(), folder=False, made_by="pro
                 raise OutputError(target, f"its name's {target.suffix or 'missing'} suffix is not {path.suffix}")
         except OutputError as exc:
             if target != path:  # named as the user gave it, and what it points at
-                exc.path = f"{path} (a link to {target})"
+                exc.path, exc.target = str(path), str(target)
             raise
         return target
     except OutputError:
@@ -388,7 +388,7 @@ def _check_data_files(path: Path, inputs, folder) -> None:
             if os.path.lexists(path) and not (folder and path.is_dir() and not any(path.iterdir())):
                 raise OutputError(
                     path,
-                    f"cannot tell whether input {src}'s frames are read from it: {exc.path}: {exc.problem}, "
+                    f"cannot tell whether input {shown(src)}'s frames are read from it: {shown(exc.path)}: {exc.problem}, "
                     "so its links cannot be listed; choose an output that does not exist yet",
                 ) from None
             continue
@@ -396,7 +396,7 @@ def _check_data_files(path: Path, inputs, folder) -> None:
             if _inside(data, path) if folder else _same(data, path):
                 raise OutputError(
                     path,
-                    f"{'holds' if folder else 'is'} {data}, which input {src}'s frames are read from: "
+                    f"{'holds' if folder else 'is'} {shown(data)}, which input {shown(src)}'s frames are read from: "
                     "an input is never overwritten; choose another output",
                 )
 
@@ -424,7 +424,8 @@ def _link_target(path: Path, folder: bool) -> Path:
         raise OutputError(path, "is a symbolic link in a loop (it never reaches a file); choose another output")
     if not target.parent.is_dir():
         raise OutputError(
-            path, f"is a symbolic link to {target}, whose folder {target.parent} does not exist; choose another output"
+            path,
+            f"is a symbolic link to {shown(target)}, whose folder {shown(target.parent)} does not exist; choose another output",
         )
     return target
 
@@ -444,7 +445,7 @@ def _check_output(path: Path, overwrite, inputs, folder: str | bool) -> Path:
             raise OutputError(
                 path,
                 f"{'holds' if folder and resolved(src) != resolved(path) else 'is'} the "
-                f"input {src}: an input is never overwritten; choose another output",
+                f"input {shown(src)}: an input is never overwritten; choose another output",
             )
     holder = next((p for p in path.parents if os.path.lexists(p)), None)  # checked now, not after the work
     if holder is not None and not holder.is_dir():
@@ -550,10 +551,10 @@ def _files(folder: Path) -> set[str]:
             sub = Path(root, name)
             try:
                 with os.scandir(sub) as entries:
-                    shown = sub.is_symlink() or not any(entries)
+                    listed = sub.is_symlink() or not any(entries)
             except OSError:  # unreadable: os.walk does not enter it, so what it holds is unknown
-                shown = True
-            if shown:
+                listed = True
+            if listed:
                 out.add(sub.relative_to(folder).as_posix())
     out.discard(RESULTS_MARKER)
     return out
@@ -641,17 +642,18 @@ def _restore_interrupted(path: Path, named: Path | None = None) -> None:
     symbolic link to ``path``, for messages."""
     if not path.parent.is_dir():
         return
-    shown = path if named is None or named == path else f"{named} (a link to {path})"
+    link = named is not None and named != path
+    user, target = (named, path) if link else (path, None)
     aside = _leftovers(path, True, "old")
     if os.path.lexists(path):
         if aside:
-            beside = "it" if shown is path else path.name  # (the leftovers lie beside the link's target)
+            beside = shown(path.name) if link else "it"  # (the leftovers lie beside the link's target)
             message = UserWarning(
-                f"{shown}: previous results of an interrupted run are kept beside {beside} in "
-                f"{', '.join(p.name for p in aside)}; remove {'it' if len(aside) == 1 else 'them'} "
+                f"{linked(user, target)}: previous results of an interrupted run are kept beside {beside} in "
+                f"{', '.join(shown(p.name) for p in aside)}; remove {'it' if len(aside) == 1 else 'them'} "
                 "once nothing there is needed"
             )
-            message.path = str(shown)  # once per command: the output is checked again before it is written
+            message.path = str(user)  # once per command: the output is checked again before it is written
             warnings.warn(message, stacklevel=4)
         return
     if len(aside) == 1:
@@ -659,9 +661,11 @@ def _restore_interrupted(path: Path, named: Path | None = None) -> None:
             _publish(aside[0], path, folder=True)
     elif aside:
         raise OutputError(
-            shown,
+            user,
             f"is missing, and {len(aside)} previous results folders of interrupted runs are kept beside it "
-            f"({', '.join(p.name for p in aside)}): rename the one to keep back to {path.name}, then run again",
+            f"({', '.join(shown(p.name) for p in aside)}): rename the one to keep back to {shown(path.name)}, "
+            "then run again",
+            target=target,
         )
 
 
@@ -1081,7 +1085,7 @@ def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
             _publish(old, path, folder=True)
             kept = ""
         except OutputError:  # something took the name in between: the old folder stays aside
-            kept = f"; the previous folder is kept in {old}"
+            kept = f"; the previous folder is kept in {shown(old)}"
         raise OutputError(
             path,
             f"holds {len(strangers)} file(s) radiokit did not write there ({strangers[0]}, ...), added during "
@@ -1094,6 +1098,6 @@ def _replace_aside(tmp: Path, path: Path, old: Path) -> None:
         raise OutputError(
             path,
             f"appeared during the run (another run or program made it meanwhile); it was not replaced and this "
-            f"run's results were discarded; the previous folder is kept in {old}",
+            f"run's results were discarded; the previous folder is kept in {shown(old)}",
             errno.EEXIST,
         ) from None

@@ -34,6 +34,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.checks import is_number
 from radiokit.errors import FormatError
 from radiokit.interrupts import STOP_SIGNALS, held, settle
@@ -196,9 +197,9 @@ class ExperimentWriter:
         if mode not in ("w", "a"):
             raise ValueError(f"mode={mode!r}: expected 'w' (new file) or 'a' (append)")
         if mode == "w" and self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path}: exists; raw data is never overwritten (use mode='a' to append)")
+            raise FileExistsError(f"{shown(self.path)}: exists; raw data is never overwritten (use mode='a' to append)")
         if mode == "a" and not self.path.exists():
-            raise FileNotFoundError(f"{self.path}: no experiment file to append to")
+            raise FileNotFoundError(f"{shown(self.path)}: no experiment file to append to")
         lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
         if mode == "w" and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
@@ -313,7 +314,7 @@ class ExperimentWriter:
         if free < need + self.reserve_bytes:  # the file's layout too: libhdf5 crashed beginning one on a full disk
             raise OSError(
                 errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, the new file's layout and first frame need {need} plus "
+                f"{shown(self.path)}: disk full: {free} bytes free, the new file's layout and first frame need {need} plus "
                 f"{self.reserve_bytes} in reserve beside the old file, which is kept until the new file's "
                 "first frame; nothing was written, the old file is unchanged; free space or write elsewhere",
             )
@@ -365,7 +366,7 @@ class ExperimentWriter:
             # the old file stays hidden, unlocked so that the next run of this name puts it back
             self.previous_kept_in = aside
             warnings.warn(
-                f"{self.path}: the previous series could not be put back ({exc.strerror or exc}); it stays in {aside}",
+                f"{shown(self.path)}: the previous series could not be put back ({exc.strerror or exc}); it stays in {aside}",
                 stacklevel=3,
             )
             return
@@ -374,8 +375,8 @@ class ExperimentWriter:
         if not self.restored_previous:
             self.previous_kept_in = aside
             warnings.warn(
-                f"{self.path}: another program made a file under this name meanwhile; the previous series "
-                f"stays in {aside} (rename it to keep it)",
+                f"{shown(self.path)}: another program made a file under this name meanwhile; the previous series "
+                f"stays in {shown(aside)} (rename it to keep it)",
                 stacklevel=3,
             )
 
@@ -388,7 +389,7 @@ class ExperimentWriter:
             _fsync(aside.parent)
         except OSError as exc:  # the run goes on; the file is named now, and by every later run
             warnings.warn(
-                f"{self.path}: the previous series, kept in {aside} until this run's first frame, could not "
+                f"{shown(self.path)}: the previous series, kept in {aside} until this run's first frame, could not "
                 f"be removed ({exc.strerror or exc}); rename it to keep it, or remove it",
                 stacklevel=3,
             )
@@ -412,13 +413,13 @@ class ExperimentWriter:
         if free < first:
             raise OSError(
                 errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, a frame needs {frame_bytes} plus "
+                f"{shown(self.path)}: disk full: {free} bytes free, a frame needs {frame_bytes} plus "
                 f"{self.reserve_bytes} in reserve; nothing was written" + self._kept(),
             )
         need = old + self.reserve_bytes + (first if self.ballast else 0)
         if free < need:
             warnings.warn(
-                f"{self.path}: overwriting: the old file ({_human(old)}) is not freed until the new one is "
+                f"{shown(self.path)}: overwriting: the old file ({_human(old)}) is not freed until the new one is "
                 f"complete and renamed over it, and {_human(free)} are free: a new file as large will not fit "
                 "(an overwrite needs room for both until it completes); free space or write elsewhere",
                 UserWarning,
@@ -434,7 +435,7 @@ class ExperimentWriter:
         if free < need:
             raise OSError(
                 errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, "
+                f"{shown(self.path)}: disk full: {free} bytes free, "
                 + ("a new experiment file" if mode == "w" else "appending")
                 + f" needs {need} ({self.reserve_bytes} of them in reserve); nothing was written",
             )
@@ -515,7 +516,7 @@ class ExperimentWriter:
             raise FormatError(self.path, f"not an experiment file: /{FRAMES} is missing")
         data = h5[FRAMES]
         if shape is not None and tuple(shape) != data.shape[1:]:
-            raise ValueError(f"{self.path}: frames are {data.shape[1:]}, not {tuple(shape)}")
+            raise ValueError(f"{shown(self.path)}: frames are {data.shape[1:]}, not {tuple(shape)}")
         # A crash between resizing and the counter update leaves a partial frame: drop it.
         # checked first: `true` (1) or a negative count here truncated the frames already taken
         n = _frames_complete(self.path, h5, data.shape[0])
@@ -535,8 +536,10 @@ class ExperimentWriter:
         if recorded is None and "bit_depth_readout" not in self._h5[DETECTOR]:
             self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
         elif recorded != int(bit_depth):
-            shown = recorded if recorded is not None else "an unreadable value"
-            raise ValueError(f"{self.path}: records bit_depth_readout {shown}; bit_depth={bit_depth} given to append")
+            said = recorded if recorded is not None else "an unreadable value"
+            raise ValueError(
+                f"{shown(self.path)}: records bit_depth_readout {said}; bit_depth={bit_depth} given to append"
+            )
 
     # -- writing ------------------------------------------------------------------------------
     @property
@@ -586,7 +589,7 @@ class ExperimentWriter:
         )
         declared = f"bit_depth={bits}" if bits else "no bit_depth given: the C7942's 12 bits, as readers assume"
         message = BitDepthWarning(
-            f"{self.path}: frame {self._n} (image_key {key}) has values up to {int(frame.max())}, above "
+            f"{shown(self.path)}: frame {self._n} (image_key {key}) has values up to {int(frame.max())}, above "
             f"0..{top} ({declared}); {cause}. Readers will warn of it too"
         )
         message.path = str(self.path)
@@ -614,17 +617,19 @@ class ExperimentWriter:
         frame = np.asarray(frame)
         data = self._h5[FRAMES]
         if frame.shape != data.shape[1:]:
-            raise ValueError(f"{self.path}: frame shape {frame.shape} does not match the file's {data.shape[1:]}")
+            raise ValueError(
+                f"{shown(self.path)}: frame shape {frame.shape} does not match the file's {data.shape[1:]}"
+            )
         if frame.dtype != np.uint16:
             frame = self._as_counts(frame)
         if int(image_key) not in (0, 1, 2, 3):
             raise ValueError(f"image_key={image_key}: expected 0 projection, 1 flat, 2 dark, 3 invalid")
         self._check_range(frame, int(image_key))
         if ratio is not None and not _ratio_ok(ratio):
-            raise ValueError(f"{self.path}: ratio={ratio!r}: {RATIO_RULE}")
+            raise ValueError(f"{shown(self.path)}: ratio={ratio!r}: {RATIO_RULE}")
         i = self._n
         if getattr(self, "_failed", None):
-            raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({self._failed})")
+            raise OSError(errno.EIO, f"{shown(self.path)}: takes no more frames after a failed write ({self._failed})")
         self._hold_ballast(frame.nbytes + self.reserve_bytes)
         self._check_room(frame.nbytes, i)
         values = {
@@ -663,16 +668,16 @@ class ExperimentWriter:
         """``frame`` as uint16 where that loses nothing: integers in range, or floats holding whole
         counts (a raw frame an image program saved as float); else ValueError saying why."""
         if frame.dtype.kind not in "uif":
-            raise ValueError(f"{self.path}: raw frames are stored as uint16; got {frame.dtype}")
+            raise ValueError(f"{shown(self.path)}: raw frames are stored as uint16; got {frame.dtype}")
         if frame.size and not (np.all(np.isfinite(frame)) and frame.min() >= 0 and frame.max() <= 65535):
             raise ValueError(
-                f"{self.path}: raw frames are stored as uint16 (0 to 65535); got {frame.dtype} values outside "
+                f"{shown(self.path)}: raw frames are stored as uint16 (0 to 65535); got {frame.dtype} values outside "
                 "that range or not finite"
             )
         if frame.dtype.kind == "f" and not np.array_equal(frame, np.rint(frame)):
             # an averaged dark or flat: rounding it here would change the data without a word
             raise ValueError(
-                f"{self.path}: raw frames are stored as uint16; this {frame.dtype} frame holds values that "
+                f"{shown(self.path)}: raw frames are stored as uint16; this {frame.dtype} frame holds values that "
                 "are not whole counts (an average?): append the raw frames it was made from, or round it "
                 "yourself, np.rint(frame).astype(np.uint16), knowing what that loses"
             )
@@ -692,7 +697,7 @@ class ExperimentWriter:
             when the file takes no more frames after a failed write."""
         failed = getattr(self, "_failed", None)
         if failed:
-            raise OSError(errno.EIO, f"{self.path}: takes no more frames after a failed write ({failed})")
+            raise OSError(errno.EIO, f"{shown(self.path)}: takes no more frames after a failed write ({failed})")
         self._hold_ballast(self._frame_bytes + self.reserve_bytes)
         try:
             self._check_room(self._frame_bytes, self._n)
@@ -711,7 +716,7 @@ class ExperimentWriter:
         except Exception:
             pass
         code = errno.ENOSPC if "No space left" in str(exc) or getattr(exc, "errno", None) == errno.ENOSPC else errno.EIO
-        return OSError(code, f"{self.path}: {what} could not be written ({self._failed})" + kept)
+        return OSError(code, f"{shown(self.path)}: {what} could not be written ({self._failed})" + kept)
 
     def _guarded_write(self, nbytes: int, what: str):
         """A context for a write of about ``nbytes`` besides a frame (``what``, for the message):
@@ -719,7 +724,7 @@ class ExperimentWriter:
         :attr:`reserve_bytes`, as a frame is -- libhdf5 cannot survive a write that fails half-way
         -- and, if the disk fills in between, handled as a frame cut short."""
         if getattr(self, "_failed", None):
-            raise OSError(errno.EIO, f"{self.path}: takes no more writes after a failed write ({self._failed})")
+            raise OSError(errno.EIO, f"{shown(self.path)}: takes no more writes after a failed write ({self._failed})")
         # the frames' ballast, not one sized for this write: a simulation record's (90 MB raw on
         # the full panel) would double the room it needs; it covers a write up to a frame's size
         self._hold_ballast(self._frame_bytes + self.reserve_bytes)
@@ -737,7 +742,7 @@ class ExperimentWriter:
             kept = self._kept() if self._replaces is not None else f"; the {n_before} frame(s) before it are complete"
             raise OSError(
                 errno.ENOSPC,
-                f"{self.path}: disk full: {free} bytes free, {needs} plus {self.reserve_bytes} in reserve{then}{kept}",
+                f"{shown(self.path)}: disk full: {free} bytes free, {needs} plus {self.reserve_bytes} in reserve{then}{kept}",
             )
 
     @property
@@ -763,7 +768,7 @@ class ExperimentWriter:
                 kept = "; the old file is kept unchanged and the new frames are discarded as the writer closes"
             raise OSError(
                 errno.EFBIG,
-                f"{self.path}: file size limit: the file has {size} bytes and may not exceed {limit} "
+                f"{shown(self.path)}: file size limit: the file has {size} bytes and may not exceed {limit} "
                 f"(the process's file-size limit or the file system's); frame {i} needs {nbytes} plus "
                 f"{self.reserve_bytes} in reserve" + kept,
             )
@@ -845,7 +850,7 @@ class ExperimentWriter:
         indices = [int(i) for i in indices]
         for i in indices:
             if not 0 <= i < self._n:
-                raise IndexError(f"{self.path}: frame {i} out of range (0..{self._n - 1})")
+                raise IndexError(f"{shown(self.path)}: frame {i} out of range (0..{self._n - 1})")
         # never refused for room, unlike the other writes: these labels are what keeps a suspect
         # frame from being taken for a good one, and they rewrite chunks already on disk; the
         # ballast's room is given back first for what libhdf5 writes besides
@@ -894,7 +899,7 @@ class ExperimentWriter:
                     self._put_back()
             if failed is not None:
                 code = errno.ENOSPC if "No space left" in failed else errno.EIO
-                raise OSError(code, f"{self.path}: could not be closed ({failed})")
+                raise OSError(code, f"{shown(self.path)}: could not be closed ({failed})")
 
     def _discard_empty(self) -> None:
         """Remove the new file a failed ``with`` block made and never wrote a frame to: left, it
@@ -979,10 +984,11 @@ def _unclosed(
     if tmp is None:
         return
     warnings.warn(
-        f"{path}: ExperimentWriter never closed: {path} is still the old file, unchanged; the new frames are in "
-        f"{tmp}, not renamed over it (an unclosed writer may be a crash, or a refused one hold part of a run). "
+        f"{shown(path)}: ExperimentWriter never closed: {shown(path)} is still the old file, unchanged; the new frames are in "
+        f"{shown(tmp)}, not renamed over it (an unclosed writer may be a crash, or a refused one hold part of a run). "
         "Use `with ExperimentWriter(...) as w:` or call close(). Remove that file (an overwrite of "
-        f"{path} by a later process removes it; this process's do not), or rename it over {path} by hand only if "
+        f"{shown(path)} by a later process removes it; this process's do not), or rename it over {shown(path)} by "
+        "hand only if "
         "it holds the whole run",
         UserWarning,
         stacklevel=1,  # no caller of the user's to name: the garbage collector or interpreter exit calls it
@@ -1070,7 +1076,7 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     True,
-                    f"{path}: a run would first restore the previous series from {old.name} (an --overwrite "
+                    f"{shown(path)}: a run would first restore the previous series from {old.name} (an --overwrite "
                     "stopped before its first frame had set it aside); this dry run moved nothing and plans "
                     "for the name as it stands",
                 )
@@ -1079,7 +1085,7 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     True,
-                    f"{path}: restored the previous series from {old.name} (an --overwrite stopped before its "
+                    f"{shown(path)}: restored the previous series from {old.name} (an --overwrite stopped before its "
                     "first frame had set it aside)",
                 )
             )
@@ -1087,7 +1093,7 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     False,
-                    f"{path}: a previous series is still kept in {old} (set aside by an --overwrite; the name now "
+                    f"{shown(path)}: a previous series is still kept in {old} (set aside by an --overwrite; the name now "
                     f"holds another file -- the new series' frames, a run writing, or a file of another program -- "
                     f"or it was set aside on another host); rename it to keep it (not over {target.name}), or "
                     "remove it",
@@ -1206,9 +1212,11 @@ def _hold_what_was_opened(h5, path: Path) -> tuple[int | None, tuple[int, int]]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             if exc.errno not in _NO_LOCKS:
-                raise OSError(errno.EBUSY, f"{path}: another program took the new file as it was opened") from None
+                raise OSError(
+                    errno.EBUSY, f"{shown(path)}: another program took the new file as it was opened"
+                ) from None
         if _identity(path) != mine:
-            raise OSError(errno.EBUSY, f"{path}: another program moved the new file away as it was opened")
+            raise OSError(errno.EBUSY, f"{shown(path)}: another program moved the new file away as it was opened")
     except BaseException:
         os.close(fd)
         raise
@@ -1384,10 +1392,10 @@ def check_local(path, h5, ds, allow_external=False) -> None:
         if sources and all(src.file_name == "." for src in sources):  # "." is libhdf5's "this file"
             # not "in other files": the user went looking for files that do not exist
             names = sorted({src.dset_name for src in sources})
-            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            listed = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
             raise FormatError(
                 path,
-                f"{ds.name} is a virtual dataset mapping {shown} of this file: virtual datasets are not read "
+                f"{ds.name} is a virtual dataset mapping {listed} of this file: virtual datasets are not read "
                 f"{EXTERNAL_ADVICE}, or read the source dataset itself",
                 advice={"allow_external": EXTERNAL_ADVICE},
             )
@@ -1739,18 +1747,18 @@ def checked_dataset(
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
-    shown = "/" + name.lstrip("/")  # a user's --dataset /entry/data came out "//entry/data"
+    named = "/" + name.lstrip("/")  # a user's --dataset /entry/data came out "//entry/data"
     if not isinstance(ds, h5py.Dataset):
-        raise FormatError(path, f"{shown} is not a dataset")
+        raise FormatError(path, f"{named} is not a dataset")
     check_local(path, h5, ds, allow_external)
     if ds.is_virtual:  # allowed: its sources must be there, or libhdf5 gives the fill value
         check_virtual_sources(path, ds)
     if not _plain_numbers(ds.dtype, kinds):
         raise FormatError(
-            path, f"{shown} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
+            path, f"{named} has type {ds.dtype}; expected {'integers' if set(kinds) <= set('iu') else 'numbers'}"
         )
     if ds.ndim not in ndims:
-        raise FormatError(path, f"{shown} has shape {ds.shape}; expected {_dimensions(ndims)}")
+        raise FormatError(path, f"{named} has shape {ds.shape}; expected {_dimensions(ndims)}")
     check_filters(path, ds)
     if written:  # else its caller checks both, knowing what may be unwritten (read_experiment_meta)
         if whole:
@@ -1965,7 +1973,7 @@ def usable_pixel_sizes(path, where: str, sizes: dict, problems=()) -> dict:
         problems.append(f"{', '.join(odd)}: not a panel's pixel ({lo * 1e3:g} to {hi * 1e3:g} mm)")
     if problems:
         why = f"{where}: {'; '.join(problems)}"
-        warnings.warn(f"{path}: {why}; its pixel size is ignored", UserWarning, stacklevel=3)
+        warnings.warn(f"{shown(path)}: {why}; its pixel size is ignored", UserWarning, stacklevel=3)
         return {"pixel_size_unusable": why}
     out = dict(sizes)
     if "x_pixel_size" in out:
@@ -2055,8 +2063,8 @@ def _frames_complete(path, h5, default: int) -> int:
     bool (HDF5's ``true`` reads as 1 frame), a fraction, text or a negative number is no count."""
     n = h5[ENTRY].attrs.get("frames_complete", default)
     if np.ndim(n) != 0 or np.asarray(n).dtype.kind not in "iu" or n < 0:
-        shown = n.item() if isinstance(n, np.generic) else n
-        raise FormatError(path, f"/{ENTRY}@frames_complete is {shown!r}; expected a count of frames")
+        value = n.item() if isinstance(n, np.generic) else n
+        raise FormatError(path, f"/{ENTRY}@frames_complete is {value!r}; expected a count of frames")
     return int(n)
 
 

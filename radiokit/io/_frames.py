@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from radiokit._names import shown
+
 __all__ = ["Frames", "BitDepthWarning"]
 
 
@@ -140,7 +142,9 @@ def check_bit_depth(path, frame: np.ndarray, bits: int | None, *, swap_advice: s
         f"{_fitting_adc(peak)}another detector (C9730DK/C9732DK are 14-bit, 0..16383; many cameras 16-bit), data "
         "rescaled before saving, or a wrong geometry, offset or byte order; the values are read as stored"
     )
-    message = BitDepthWarning(f"{path}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; {cause}.")
+    message = BitDepthWarning(
+        f"{shown(path)}: pixel values up to {peak} exceed the {bits}-bit range 0..{top}; {cause}."
+    )
     message.path = str(path)  # for callers that show one warning per file (the command line)
     warnings.warn(message, stacklevel=3)
     return True

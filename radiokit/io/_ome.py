@@ -14,6 +14,8 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import NamedTuple
 
+from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError
 
 __all__ = [
@@ -238,6 +240,7 @@ def micromanager_metadata(tif, path=None, strict=True) -> dict:
     entries in one read, 8 GB asked of a 5 KB file declaring 4*10**8 of them: where memory is not
     overcommitted that read fails, and the file was "cannot be read as tiff: " with nothing after."""
     name = tif.filehandle.path
+    shown_as = Path(path or name or "")
     if name and os.path.isfile(name):
         _check_block_lengths(name, path)
         index, problem = _read_index_map(name)
@@ -245,11 +248,23 @@ def micromanager_metadata(tif, path=None, strict=True) -> dict:
             return {"Summary": _read_summary(name), "IndexMap": None}
         if index is None and problem.startswith("declares"):
             raise FormatError(
-                Path(path or name),
+                shown_as,
                 f"its Micro-Manager index map {problem}: the acquisition likely crashed before the file was closed "
                 "(Micro-Manager fills the index map then), or the file is corrupt: refused",
             )
-    return tif.micromanager_metadata or {}
+    # its summary steers which planes are frames, in what order: past radiokit's depth
+    # (radiokit._json), refused; tifffile's own json.loads of one past Python's reach ended
+    # "cannot be read as tiff: maximum recursion depth exceeded while decoding a JSON array" (s52)
+    deep = strict_json.TooDeep(f"its Micro-Manager summary nests deeper than {strict_json.MAX_DEPTH} levels")
+    try:
+        meta = tif.micromanager_metadata or {}
+        if strict_json.too_deep(meta.get("Summary")):
+            raise deep
+    except (RecursionError, strict_json.TooDeep):
+        if not strict:
+            return {}
+        raise FormatError(shown_as, f"{deep}, past any JSON radiokit reads: not read") from None
+    return meta
 
 
 def _check_block_lengths(name: str, path=None) -> None:
@@ -288,7 +303,6 @@ def _check_block_lengths(name: str, path=None) -> None:
 def _read_summary(name: str) -> dict | None:
     """The Micro-Manager summary of the file ``name`` (its JSON at byte 40, as tifffile reads it),
     without its index map; None where it has none that reads."""
-    import json
     import struct
 
     try:
@@ -298,7 +312,9 @@ def _read_summary(name: str) -> dict | None:
             magic, length = struct.unpack_from(order + "II", head, 32)
             if magic != 2355492 or length > os.fstat(fh.fileno()).st_size:
                 return None
-            summary = json.loads(fh.read(length).decode("utf-8", "replace"))
+            summary = strict_json.loads_record(
+                fh.read(length).decode("utf-8", "replace")
+            )  # a ValueError past its depth
     except (OSError, ValueError, TypeError, struct.error):
         return None
     return summary if isinstance(summary, dict) else None
@@ -356,12 +372,12 @@ def not_there(path) -> str:
     of a name `ls` lists sent the user looking for a file that is there."""
     path = Path(path)
     if not path.is_symlink():
-        return f"{path.name} is missing"
+        return f"{shown(path.name)} is missing"
     try:
         target = os.readlink(path)
     except OSError:  # (gone between the two looks) as good as missing
-        return f"{path.name} is missing"
-    return f"{path.name} is a symbolic link to {target}, which points nowhere (no file is there)"
+        return f"{shown(path.name)} is missing"
+    return f"{shown(path.name)} is a symbolic link to {shown(target)}, which points nowhere (no file is there)"
 
 
 def _mmstack_files(tif, summary: dict, path=None, check=True) -> list[str] | None:

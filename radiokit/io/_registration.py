@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import h5py
 import numpy as np
 
+from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
@@ -84,13 +85,13 @@ def write_registration(path, record: RegistrationRecord, *, overwrite=False, inp
     registered = np.asarray(record.registered, np.float32)
     if displacement.shape != (2,) + registered.shape:
         raise ValueError(
-            f"{path}: displacement {displacement.shape} does not match the registered image "
+            f"{shown(path)}: displacement {displacement.shape} does not match the registered image "
             f"{registered.shape}; expected (2, rows, cols)"
         )
     confidence = None if record.confidence is None else np.asarray(record.confidence, np.float32)
     if confidence is not None and confidence.shape != registered.shape:
         raise ValueError(
-            f"{path}: confidence {confidence.shape} does not match the registered image {registered.shape}"
+            f"{shown(path)}: confidence {confidence.shape} does not match the registered image {registered.shape}"
         )
     with atomic_h5(path, overwrite=overwrite, inputs=inputs) as h5:
         h5.attrs["default"] = ENTRY

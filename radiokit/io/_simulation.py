@@ -28,6 +28,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from radiokit.checks import toml_loads
 from radiokit.errors import FormatError
 from radiokit.io._experiment import check_links, checked_dataset
 from radiokit.io._layout import ReadBudget, check_finite, open_layout, text
@@ -117,7 +118,7 @@ class SimulationRecord:
     def scene_name(self) -> str | None:
         """The scene's ``name``, from its TOML."""
         try:
-            name = tomllib.loads(self.scene_toml).get("name")
+            name = toml_loads(self.scene_toml).get("name")
         except tomllib.TOMLDecodeError:
             return None
         return name if isinstance(name, str) else None

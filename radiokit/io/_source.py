@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError, InputErrors, RadiokitError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
 from radiokit.io._experiment import (
@@ -971,8 +972,13 @@ class FrameSource:
         desc = tags.get("ImageDescription")
         if isinstance(desc, str) and desc.startswith("{"):
             try:
-                self.meta["description"] = strict_json.loads(desc)  # radiokit's nulled inf/NaN back
-            except (ValueError, RecursionError):  # free text, however it looks
+                # radiokit's nulled inf/NaN back; past radiokit's depth or length, said and kept as text:
+                # it steers nothing but what is shown of it (s52: 900 levels loaded, and every
+                # caller's json.dumps of the meta recursed past Python's limit)
+                self.meta["description"] = strict_json.loads_record(desc, "its ImageDescription's JSON")
+            except strict_json.Refused as exc:
+                warnings.warn(f"{shown(self.path)}: {exc}: kept as text", UserWarning, stacklevel=4)
+            except ValueError:  # free text, however it looks
                 pass
 
     def _tiff_pixel_size(self, first) -> dict:
@@ -1088,9 +1094,9 @@ class FrameSource:
         if self.format != "tiff" or not self._tif.is_shaped or not self._pages:
             return False
         try:
-            meta = strict_json.loads(self._pages[0].shaped_description or "")
+            meta = strict_json.loads_record(self._pages[0].shaped_description or "")
             shape, axes = meta["shape"], meta.get("axes")
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        except (ValueError, TypeError, KeyError, AttributeError):
             return False
         if not (
             isinstance(axes, str) and isinstance(shape, list) and len(axes) == len(shape) > 2 and axes[-2:] == "YX"
@@ -1121,7 +1127,7 @@ class FrameSource:
             return None
         if axes is None and min(first.shape) < _THIN:
             warnings.warn(
-                f"{self.path}: its tifffile description says shape {tuple(shape)} without axes: read as "
+                f"{shown(self.path)}: its tifffile description says shape {tuple(shape)} without axes: read as "
                 f"{len(pages)} frame(s) of {first.shape[0]}x{first.shape[1]}, as tifffile takes its axes "
                 "(a trailing 1 a channel); "
                 f"were they {math.prod(shape[:-2])} frames of {rows}x{cols}, write them with their axes "
@@ -1166,7 +1172,7 @@ class FrameSource:
             # ImageJ counts every image it wrote: a chain of another length was cut short (a
             # crashed writer) or edited, and reads as the pages there are, which the user should know
             warnings.warn(
-                f"{self.path}: its ImageJ description says images={images} but it holds {len(pages)} pages "
+                f"{shown(self.path)}: its ImageJ description says images={images} but it holds {len(pages)} pages "
                 f"(cut short or edited?): reading the {len(pages)}",
                 UserWarning,
                 stacklevel=2,
@@ -1202,14 +1208,14 @@ class FrameSource:
         A multi-file set read whole (allow_external) was checked plane by plane already."""
         tif, n = self._tif, len(self._pages)
         for note in self._mm_notes:  # (tifffile only logs it, if anything)
-            warnings.warn(f"{self.path}: {note}: reading the {n} written", UserWarning, stacklevel=3)
+            warnings.warn(f"{shown(self.path)}: {note}: reading the {n} written", UserWarning, stacklevel=3)
         if not tif.is_ome or "ome_files" in self.meta:
             return
         xml = tif.ome_metadata
         companion = binary_only(xml)
         if companion is not None:
             warnings.warn(
-                f"{self.path}: its OME-XML is BinaryOnly: the plane order, pixel size and the set's other files "
+                f"{shown(self.path)}: its OME-XML is BinaryOnly: the plane order, pixel size and the set's other files "
                 f"are described in {companion}, which radiokit has not read: reading this file's {n} pages "
                 "in file order",
                 UserWarning,
@@ -1228,7 +1234,7 @@ class FrameSource:
             names = ", ".join(parts[:3]) + (", ..." if len(parts) > 3 else "")
             beside = f"; {names} beside it may hold the rest, which its OME-XML does not name"
         warnings.warn(
-            f"{self.path}: its OME-XML says {planes} planes but it holds {n} pages "
+            f"{shown(self.path)}: its OME-XML says {planes} planes but it holds {n} pages "
             f"(cut short or edited?{beside}): reading the {n}",
             UserWarning,
             stacklevel=3,
@@ -1352,7 +1358,7 @@ class FrameSource:
             return None
         bits, word = int(first.bitspersample), 8 * self._words
         warnings.warn(
-            f"{self.path}: TIFF says BitsPerSample {bits} but its {'tiles' if first.is_tiled else 'strips'} hold "
+            f"{shown(self.path)}: TIFF says BitsPerSample {bits} but its {'tiles' if first.is_tiled else 'strips'} hold "
             f"one {word}-bit word per pixel: read as {word}-bit words",
             UserWarning,
             stacklevel=5,  # the caller of read() / open_frames()
@@ -1512,7 +1518,7 @@ class FrameSource:
         stored_max = page.tags.valueof(281)
         if stored_max is not None and int(np.max(stored_max)) < top:
             warnings.warn(
-                f"{self.path}: MinIsWhite TIFF: values read as {top} - stored (TIFF 6.0, {page.bitspersample}-bit); "
+                f"{shown(self.path)}: MinIsWhite TIFF: values read as {top} - stored (TIFF 6.0, {page.bitspersample}-bit); "
                 f"its MaxSampleValue {int(np.max(stored_max))} is statistics only and not used, so a writer "
                 f"that inverted within 0..{int(np.max(stored_max))} reads {top - int(np.max(stored_max))} higher",
                 UserWarning,
@@ -1540,7 +1546,7 @@ class FrameSource:
         coefficients = coefficients[: coefficients.index(None)] if None in coefficients else coefficients
         if cf == 20 and coefficients:
             warnings.warn(
-                f"{self.path}: its ImageJ description gives c0..c{len(coefficients) - 1} with cf=20, ImageJ's "
+                f"{shown(self.path)}: its ImageJ description gives c0..c{len(coefficients) - 1} with cf=20, ImageJ's "
                 "'no calibration' (signed 16-bit is cf=0): ImageJ shows the stored values, and so they are read",
                 UserWarning,
                 stacklevel=5,  # the caller of read() / open_frames(),
@@ -1587,7 +1593,7 @@ class FrameSource:
         if not found or (set(found) == {"nodata"} and np.dtype(page.dtype).kind != "f"):
             if found and _held_by(found["nodata"], page.dtype):  # (-9999 or nan marks no uint16 pixel)
                 warnings.warn(
-                    f"{self.path}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
+                    f"{shown(self.path)}: GDAL_NODATA {found['nodata']:g} marks missing pixels, but its integer pixels "
                     "have no NaN to mark them with: read as stored",
                     UserWarning,
                     stacklevel=6,  # the caller of read() / open_frames()
@@ -1736,7 +1742,7 @@ class FrameSource:
             # after the other, so one may be ahead; what both hold is what has been written
             m = min(n, keys.shape[0])
             warnings.warn(
-                f"{self.path}: is marked as being written (SWMR): {keys.name} holds {keys.shape[0]} image keys for {n} "
+                f"{shown(self.path)}: is marked as being written (SWMR): {keys.name} holds {keys.shape[0]} image keys for {n} "
                 f"frames; reading the first {m}",
                 UserWarning,
                 stacklevel=3,
@@ -1813,7 +1819,7 @@ class FrameSource:
         # one nested past json's reach failed the whole file, "cannot be read as hdf5" (s51)
         try:
             prov = strict_json.loads_record(self._h5[CALIBRATION].attrs.get("provenance", "{}"), "provenance")
-        except strict_json.TooDeep as exc:
+        except strict_json.Refused as exc:
             return out | {"provenance_unreadable": str(exc)}
         except (ValueError, TypeError):
             return out | {"provenance_unreadable": "provenance is not JSON text"}
@@ -1860,7 +1866,7 @@ class FrameSource:
         if i < 0:
             i += self.n
         if not 0 <= i < self.n:
-            raise IndexError(f"{self.path}: frame {i} out of range (0..{self.n - 1})")
+            raise IndexError(f"{shown(self.path)}: frame {i} out of range (0..{self.n - 1})")
         try:
             frame = getattr(self, f"_read_{self.format}")(i)
         except FormatError:
@@ -2188,10 +2194,11 @@ def _shaped_series(pages) -> list[tuple[tuple, str]]:
         if not desc:
             continue
         try:
-            meta = strict_json.loads(desc)
+            meta = strict_json.loads_record(desc)
             shape = tuple(int(v) for v in meta["shape"])
             axes = str(meta.get("axes") or "")
-        except (ValueError, TypeError, KeyError, AttributeError):  # the older "shape=(...)" form, or damaged
+        # the older "shape=(...)" form, or damaged: nested past radiokit's depth, a shape of 1e999
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
             continue
         if shape[-2:] != tuple(page.shape):  # a description another program left on other pixels
             return []
@@ -2241,10 +2248,10 @@ def _trimmed_description(page) -> tuple[list | None, str | None]:
     where tifffile stored it without its trailing 1s (the page is the shape's last two left),
     else (None, None). Axes naming a samples axis (S) are an image's, also (None, None)."""
     try:
-        meta = strict_json.loads(page.shaped_description or "")
+        meta = strict_json.loads_record(page.shaped_description or "")
         shape = [int(v) for v in meta["shape"]]
         axes = meta.get("axes")
-    except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
         return None, None
     trimmed = list(shape)
     while len(trimmed) > 2 and trimmed[-1] == 1:
@@ -2326,7 +2333,7 @@ def _matlab_array(path, h5: h5py.File, data) -> str | None:
     else:
         return None
     warnings.warn(
-        f"{path}: {data.name} is a MATLAB array ({why}), stored column-major: its frames are read "
+        f"{shown(path)}: {data.name} is a MATLAB array ({why}), stored column-major: its frames are read "
         "transposed, as MATLAB shows them (a rows x cols x n stack as n frames of rows x cols)",
         UserWarning,
         stacklevel=5,  # the caller of read() / open_frames()
@@ -2432,7 +2439,7 @@ def _warn_frames_last(path, n, shape) -> None:
     rows, cols = shape
     if _frames_last(n, shape):
         warnings.warn(
-            f"{path}: reads as {n} frames of {rows}x{cols}; if it is a stack stored rows x cols x n ({cols} frames "
+            f"{shown(path)}: reads as {n} frames of {rows}x{cols}; if it is a stack stored rows x cols x n ({cols} frames "
             f"of {n}x{rows}: numpy's dstack, IDL, Fortran), write it as (n, rows, cols)",
             UserWarning,
             stacklevel=5,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ import h5py
 import numpy as np
 
 from radiokit import _json as strict_json
+from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
 from radiokit.io._layout import ReadBudget, open_layout, text
@@ -101,7 +103,7 @@ class StackWriter:
         self.n = 0
         suffix = self.path.suffix.lower()
         if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
-            raise ValueError(f"{self.path}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+            raise ValueError(f"{shown(self.path)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
         frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
         self._atomic = atomic_path(
             self.path,
@@ -172,7 +174,7 @@ class StackWriter:
             return
         mask = np.asarray(mask)
         if mask.shape != self.frame_shape:
-            raise ValueError(f"{self.path}: pixel mask shape {mask.shape} != the frames' {self.frame_shape}")
+            raise ValueError(f"{shown(self.path)}: pixel mask shape {mask.shape} != the frames' {self.frame_shape}")
         instrument = entry.create_group("instrument")
         instrument.attrs["NX_class"] = "NXinstrument"
         detector = instrument.create_group("detector")
@@ -184,7 +186,7 @@ class StackWriter:
     def append(self, frame, **series):
         frame = np.asarray(frame)
         if frame.shape != self.frame_shape:
-            raise ValueError(f"{self.path}: frame shape {frame.shape} != {self.frame_shape}")
+            raise ValueError(f"{shown(self.path)}: frame shape {frame.shape} != {self.frame_shape}")
         if self.kind == "hdf5":
             i = self.n
             if i >= self._ds.shape[0]:
@@ -301,19 +303,22 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
                     raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
                 series[name] = budget.read(s)
-        meta = {k: _attr(v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
+        meta = {k: _attr(path, k, v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
         return StackRecord(ds[()], series, meta)  # its bytes were counted first
 
 
-def _attr(value):
+def _attr(path, key, value):
     """An attribute as the writer's ``meta`` gave it: JSON text of a dict or list parsed back
-    (text that does not parse, nested past Python's recursion limit included, stays text)."""
+    (text that does not parse stays text; nested past radiokit's depth too, said: s52, 900
+    levels loaded and a caller's json.dumps of the meta recursed past Python's limit)."""
     if isinstance(value, (bytes, str)):
         value = text(value)
     if isinstance(value, str) and value[:1] in "[{":
         try:
-            return strict_json.loads(value)
-        except (ValueError, RecursionError):
+            return strict_json.loads_record(value, f"/{STACK}@{key}")
+        except strict_json.Refused as exc:
+            warnings.warn(f"{shown(path)}: {exc}: kept as text", UserWarning, stacklevel=3)
+        except ValueError:
             pass
     return value.item() if isinstance(value, np.generic) else value
 
