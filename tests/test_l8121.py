@@ -5353,3 +5353,35 @@ def test_a_refused_exposure_prints_a_tightened_limit_with_the_digits_that_part_i
     # a limit far from the value keeps its short form
     with pytest.raises(ValueError, match=r"outside kv_min\.\.kv_max = 40\.\.150 kV"):
         SourceConfig().check_exposure(20, 100)
+
+
+def test_the_emulator_s_main_gives_sigterm_back_as_it_returns(capsys):
+    """``acquisition.emulators.l8121.main`` called from a Python program (a lab script serving an
+    emulator for a dry run) left its own SIGTERM handler in place after it returned: a later
+    ``kill`` raised a KeyboardInterrupt wherever the program was. Stopped by a real SIGTERM here."""
+    import os
+    import signal
+    import threading
+
+    from acquisition.emulators.l8121 import main
+
+    def mine(signum, frame):  # the calling program's own handler (one sent before main took over)
+        pass
+
+    def stop():  # until main has returned: the first one may come before main's handler is in place
+        while not done.wait(0.2):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    done = threading.Event()
+    before = signal.signal(signal.SIGTERM, mine)
+    sender = threading.Thread(target=stop, daemon=True)
+    sender.start()
+    try:
+        assert main(["--socket", "0"]) == 0
+        after = signal.getsignal(signal.SIGTERM)
+    finally:
+        done.set()
+        sender.join()  # no SIGTERM after the test's own handler is back
+        signal.signal(signal.SIGTERM, before)
+    assert capsys.readouterr().out.startswith("socket://127.0.0.1:")
+    assert after is mine

@@ -159,11 +159,11 @@ class Acquire:
     def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True, record_imports=None):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
-        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        code = "import sys; from radiokit.cli import script; sys.exit(script())"
         if record_imports is not None:  # what the command first imports while X-rays may be on (imports_recorder)
             code = (
                 f"import sys; sys.path.insert(0, {str(ROOT / 'tests')!r}); import imports_recorder; "
-                f"imports_recorder.install({str(record_imports)!r}); from radiokit.cli import main; sys.exit(main())"
+                f"imports_recorder.install({str(record_imports)!r}); from radiokit.cli import script; sys.exit(script())"
             )
         if sigint_ignored:  # the disposition survives exec, as a shell's does
             code = (

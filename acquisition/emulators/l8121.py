@@ -1093,7 +1093,8 @@ def main(argv: list[str] | None = None) -> int:
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, terminate)
+    # given back as it returns: a Python program that serves an emulator for a while goes on after it
+    before = signal.signal(signal.SIGTERM, terminate)
     try:
         with server:
             print(server.url, flush=True)
@@ -1101,6 +1102,8 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(3600)
     except KeyboardInterrupt:
         pass
+    finally:
+        signal.signal(signal.SIGTERM, before)
     return 0
 
 
