@@ -5385,3 +5385,51 @@ def test_the_emulator_s_main_gives_sigterm_back_as_it_returns(capsys):
         signal.signal(signal.SIGTERM, before)
     assert capsys.readouterr().out.startswith("socket://127.0.0.1:")
     assert after is mine
+
+
+class _WedgedOutput:
+    """The one fake here: a real pyserial port whose output does not drain (a wedged USB adapter,
+    its transmitter stuck). Linux's close of such a port waits for the bytes up to the port's
+    closing_wait, 30 s by default, with the command's stop signals ignored by then (its outcome
+    said); a pseudo-terminal never holds output back, so the wait is modelled here, ``wait_s``
+    long, while bytes are unsent."""
+
+    def __init__(self, ser, unsent: int, wait_s: float):
+        self._ser, self.unsent, self.wait_s = ser, unsent, wait_s
+
+    def __getattr__(self, name):
+        return getattr(self._ser, name)
+
+    @property
+    def out_waiting(self) -> int:
+        return self.unsent
+
+    def reset_output_buffer(self) -> None:
+        self.unsent = 0
+        self._ser.reset_output_buffer()
+
+    def close(self) -> None:
+        if self.unsent:
+            time.sleep(self.wait_s)
+        self._ser.close()
+
+
+def test_closing_a_port_whose_output_does_not_drain_waits_the_write_time_out_at_most(caplog):
+    """A port whose output did not drain (a wedged adapter) made close() wait up to Linux's
+    closing_wait, 30 s, after the tube had been confirmed off, Ctrl-C ignored by then. The close
+    now waits for unsent bytes as long as a command's write may (``write_timeout_s``), then
+    discards them and says so in the log: the tube's state is settled, nothing they held is owed."""
+    write_timeout_s, wait_s = 0.2, 3.0
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        assert link.query("STS") == "STS 2"
+        real = link._serial
+        link._serial = _WedgedOutput(real, unsent=4, wait_s=wait_s)
+        t0 = time.monotonic()
+        with caplog.at_level(logging.WARNING, logger="acquisition.transport"):
+            link.close()
+        took = time.monotonic() - t0
+    assert write_timeout_s <= took < write_timeout_s + 0.5 < wait_s, took
+    assert not real.is_open and not link.is_open
+    said = [r.getMessage() for r in caplog.records if "unsent" in r.getMessage()]
+    assert len(said) == 1 and server.url in said[0] and "4 bytes" in said[0], caplog.text
