@@ -4,6 +4,7 @@ commands (entry-point group ``radiokit.commands``)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import signal
@@ -874,7 +875,8 @@ def _source_command(args, guard) -> int:
     try:
         # made before it connects, so that a failed connect still tells what it reached (the exit rule)
         times = {"timeout_s": args.reply_timeout, "ready_timeout_s": args.ready_timeout}
-        src = L8121(
+        driver = functools.partial(
+            L8121,
             args.port,
             baudrate=args.baudrate,
             dialect=args.dialect or "auto",
@@ -882,6 +884,20 @@ def _source_command(args, guard) -> int:
             connect=False,
             **{key: value for key, value in times.items() if value is not None},
         )
+        try:
+            src = driver()
+        except KeyboardInterrupt as exc:  # before a byte: the port not even opened by this command
+            if args.action != "off":
+                exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
+                raise
+            # the switch-off asked for goes on (it ended on the warning with nothing sent, exit
+            # 128 + N beside it, a tube left on on still): the stop only acknowledged, as one that
+            # comes during the switch-off is, its 128 + N once the tube is confirmed off (_guarded)
+            guard.cleanup()
+            if guard.acknowledged is None:
+                guard.acknowledged = getattr(exc, "signum", signal.SIGINT)
+            _say(f"{signal.Signals(guard.acknowledged).name} received: switching the X-ray tube off first, please wait")
+            src = driver()
         try:
             # the warm-up and the held beam emit: a guardian holds the port (kill -9 gets its XOF)
             src = _behind_guardian(src) if args.action in ("warm-up", "on") else src

@@ -5433,3 +5433,34 @@ def test_closing_a_port_whose_output_does_not_drain_waits_the_write_time_out_at_
     assert not real.is_open and not link.is_open
     said = [r.getMessage() for r in caplog.records if "unsent" in r.getMessage()]
     assert len(said) == 1 and server.url in said[0] and "4 bytes" in said[0], caplog.text
+
+
+def test_a_stop_as_source_off_builds_its_driver_still_switches_off(dialect, monkeypatch, capsys):
+    """A stop (a real SIGTERM) that landed while `source off` built its own driver, before any
+    connect, ended on "stopped by SIGTERM; WARNING: X-RAYS MAY STILL BE ON" with nothing sent --
+    exit 130 beside the warning -- a tube left on (other software, a crash) on still. The port
+    is there (the command holds its lock): the switch-off asked for is sent all the same and
+    confirmed by STS, exit 128 + 15. Real emulator on a pty; the signal is raised where the
+    driver reads its configuration."""
+    import acquisition.l8121 as driver
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    model.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]), model.handle("XON")  # left on by an earlier session
+    assert model.xray_on
+    real, raised = driver.SourceConfig.from_dict, []
+
+    def from_dict(cls, data):
+        if not raised:
+            raised.append(True)
+            signal.raise_signal(signal.SIGTERM)  # the guard's handler raises its StopSignal here
+        return real(data)
+
+    monkeypatch.setattr(driver.SourceConfig, "from_dict", classmethod(from_dict))
+    with PtyServer(model) as server:
+        code = main(["acquire", "source", "off", "--port", server.url, "--dialect", dialect])
+    out, err = capsys.readouterr()
+    assert raised and code == 128 + signal.SIGTERM, (code, out, err)
+    assert not model.xray_on and "XOF" in model.commands, err
+    assert "WARNING" not in out + err and "please wait" in err, (out, err)
+    assert re.search(r"X-rays off \(confirmed", out.strip().splitlines()[-1]), (out, err)
