@@ -749,7 +749,32 @@ def _probe_command(guard, args) -> int:
         _say(f"stopped by {name} while probing the controller: no X-ray command was sent, and no STS read the tube off")
         _say(TUBE_WARNING)
         return 3
-    return _probe_found(guard, result, args, state)
+    try:
+        return _probe_found(guard, result, args, state)
+    except KeyboardInterrupt as exc:
+        # after the report, before the power-on wait's own guard (_probe_waits): it ended on the
+        # generic "interrupted", exit 128 + N, not a word of the tube (a state that emits is never
+        # here: the switch-off owns the command from the probe's STS on, a stop only acknowledged)
+        return _probe_stopped(exc, args, state)
+
+
+def _probe_stopped(exc, args, state) -> int:
+    """The end of a ``source probe`` stopped by ``exc`` once its report was printed: the tube as
+    the probe's ``STS`` read it (``state``; None: a word of no state) -- confirmed off, 128 + N;
+    else the warning, exit 3, as a stop during the power-on wait ends."""
+    from acquisition.guardian import TUBE_WARNING, StopSignal
+
+    name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+    if state is not None and state.confirms_off:
+        _say(f"stopped by {name}; tube off (confirmed by STS: {state.name})")
+        return 128 + getattr(exc, "signum", 2)
+    said = state.said if state is not None else "unknown"
+    _say(
+        f"{args.port}: stopped by {name} before the controller's power-on checks were waited out; the probe's STS "
+        f"read state {said}: the controller has not confirmed the tube off"
+    )
+    _say(TUBE_WARNING)
+    return 3
 
 
 def _probe_found(guard, result, args, state) -> int:
