@@ -846,8 +846,8 @@ def test_xon_refused_before_warmup(cold, dialect):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
     with link(server, dialect) as lnk:
-        if dialect == "A":  # the emulator itself refuses too, and says why
-            assert [lnk.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 2", "STS 0"]
+        if dialect == "A":  # the emulator itself refuses too (SER stays 0: L8121.md ties no code to a refusal)
+            assert [lnk.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 0", "STS 0"]
         else:  # B: STS alone looks ready; DAG says the warm-up is due (an XON now would start it)
             assert [lnk.query(c) for c in ("STS", "DAG")] == ["STANDBY", "AGING 1 0 YET"]
 
