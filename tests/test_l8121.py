@@ -860,7 +860,8 @@ def test_xon_refused_with_interlock_open(warm, dialect, wire):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
     with link(server, dialect) as lnk:
-        assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 1"]
+        # (SER stays 0: L8121.md ties no code to a refusal or to the interlock)
+        assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 0"]
 
 
 def test_not_ready_with_the_interlock_open_says_so(warm, dialect):
@@ -1928,7 +1929,7 @@ def test_emulator_a_accepts_xof_whatever_the_operate_switch(dialect, switch):
     if dialect == "A":
         assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("XON") == refused
     else:
-        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 7"
+        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 0"  # no code of its own
 
 
 def test_b_on_refused_when_the_switch_is_local_after_connect():
@@ -3384,7 +3385,7 @@ def test_emulator_refuses():
         m.handle(c)
         for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1", "PHV 600", "DAG")
     ] == ["ERR"] * 10
-    assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 4")  # 40 W
+    assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 0")  # 40 W
     assert m.handle("") is None and m.set_ua == 0
     b = L8121Model(dialect="B", warmed_up=True)
     assert [
@@ -3429,14 +3430,14 @@ def test_emulator_scheduled_faults(dialect):
     assert m.measured() == (60, 0) and sts() == "STS 3"
     m.overload(at_s=m.time + 1)
     clock.t += 1
-    assert (sts(), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 3")
+    assert (sts(), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 0")  # L8121.md: no code for it
     assert (m.handle("RST"), sts()) == ("RST", "STS 2")
     m.require_warm_up()
     assert m.state == 0
     m.warm()
     assert m.state == 2
     m.set_operate_switch("LOCAL")
-    assert (m.handle("XON"), m.handle("SER"), sts()) == ("ERROR", "SER 7", "STS 2")
+    assert (m.handle("XON"), m.handle("SER"), sts()) == ("ERROR", "SER 0", "STS 2")
     m.set_operate_switch("REMOTE")
     m.silence()
     assert m.handle("STS") is None and m.log[-1].reply is None
