@@ -4,6 +4,7 @@ commands (entry-point group ``radiokit.commands``)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import signal
@@ -748,7 +749,32 @@ def _probe_command(guard, args) -> int:
         _say(f"stopped by {name} while probing the controller: no X-ray command was sent, and no STS read the tube off")
         _say(TUBE_WARNING)
         return 3
-    return _probe_found(guard, result, args, state)
+    try:
+        return _probe_found(guard, result, args, state)
+    except KeyboardInterrupt as exc:
+        # after the report, before the power-on wait's own guard (_probe_waits): it ended on the
+        # generic "interrupted", exit 128 + N, not a word of the tube (a state that emits is never
+        # here: the switch-off owns the command from the probe's STS on, a stop only acknowledged)
+        return _probe_stopped(exc, args, state)
+
+
+def _probe_stopped(exc, args, state) -> int:
+    """The end of a ``source probe`` stopped by ``exc`` once its report was printed: the tube as
+    the probe's ``STS`` read it (``state``; None: a word of no state) -- confirmed off, 128 + N;
+    else the warning, exit 3, as a stop during the power-on wait ends."""
+    from acquisition.guardian import TUBE_WARNING, StopSignal
+
+    name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
+    if state is not None and state.confirms_off:
+        _say(f"stopped by {name}; tube off (confirmed by STS: {state.name})")
+        return 128 + getattr(exc, "signum", 2)
+    said = state.said if state is not None else "unknown"
+    _say(
+        f"{args.port}: stopped by {name} before the controller's power-on checks were waited out; the probe's STS "
+        f"read state {said}: the controller has not confirmed the tube off"
+    )
+    _say(TUBE_WARNING)
+    return 3
 
 
 def _probe_found(guard, result, args, state) -> int:
@@ -868,20 +894,11 @@ def _source_command(args, guard) -> int:
     it becomes the switch-off error instead)."""
     from acquisition.errors import DeviceError
     from acquisition.guardian import guardian_gone
-    from acquisition.l8121 import L8121
 
     src = None
     try:
         # made before it connects, so that a failed connect still tells what it reached (the exit rule)
-        times = {"timeout_s": args.reply_timeout, "ready_timeout_s": args.ready_timeout}
-        src = L8121(
-            args.port,
-            baudrate=args.baudrate,
-            dialect=args.dialect or "auto",
-            control=args.action != "status",
-            connect=False,
-            **{key: value for key, value in times.items() if value is not None},
-        )
+        src = _source_driver(args, guard)
         try:
             # the warm-up and the held beam emit: a guardian holds the port (kill -9 gets its XOF)
             src = _behind_guardian(src) if args.action in ("warm-up", "on") else src
@@ -938,6 +955,38 @@ def _source_command(args, guard) -> int:
             guard.cleanup()  # a switch-off nobody confirmed: a signal must not cut it short
             _off_anyway(src)  # its outcome the last line; not confirmed, the exit rule's warning
         return _source_error_code(exc, src, args)
+
+
+def _source_driver(args, guard):
+    """The source command's driver, not connected. A stop as it is built (before a byte, the port
+    not opened by this command): `off` goes on, the stop only acknowledged; any other action says
+    nothing was sent (its ``tube``) and raises it."""
+    from acquisition.l8121 import L8121
+
+    times = {"timeout_s": args.reply_timeout, "ready_timeout_s": args.ready_timeout}
+    driver = functools.partial(
+        L8121,
+        args.port,
+        baudrate=args.baudrate,
+        dialect=args.dialect or "auto",
+        control=args.action != "status",
+        connect=False,
+        **{key: value for key, value in times.items() if value is not None},
+    )
+    try:
+        return driver()
+    except KeyboardInterrupt as exc:
+        if args.action != "off":
+            exc.tube = "radiokit never reached the X-ray controller: nothing was sent"
+            raise
+        # the switch-off asked for goes on (it ended on the warning with nothing sent, exit 128 + N
+        # beside it, a tube left on on still): the stop only acknowledged, as one that comes during
+        # the switch-off is, its 128 + N once the tube is confirmed off (_guarded)
+        guard.cleanup()
+        if guard.acknowledged is None:
+            guard.acknowledged = getattr(exc, "signum", signal.SIGINT)
+        _say(f"{signal.Signals(guard.acknowledged).name} received: switching the X-ray tube off first, please wait")
+        return driver()
 
 
 def _close_after(src, exc: BaseException) -> None:

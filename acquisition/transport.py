@@ -418,6 +418,21 @@ def _write_no_sigpipe(fd: int, data: bytes) -> int:
         return os.write(fd, data)
 
 
+#: How often a close looks again whether the port's output has drained (s): bytes leave in ms.
+_CLOSE_POLL_S = 0.01
+
+
+def _unsent(ser) -> int:
+    """The bytes the local port ``ser`` holds unsent in its output queue (the kernel's); 0 where it
+    cannot say (a link that is gone) or for a URL (``loop://`` counts what is not read back yet)."""
+    if not isinstance(getattr(ser, "fd", None), int):
+        return 0
+    try:
+        return int(ser.out_waiting or 0)
+    except (serial.SerialException, OSError, ValueError, AttributeError, NotImplementedError, TypeError):
+        return 0
+
+
 class SerialTransport:
     """A line-oriented serial link with explicit time-outs and one exchange at a time.
 
@@ -670,12 +685,42 @@ class SerialTransport:
         ser, self._serial = self._serial, None
         if ser is not None:
             try:
-                ser.close()
-            except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
-                pass
+                self._await_output(ser)
+            finally:  # a stop cuts the wait short: the bytes are discarded, the port closed all the same
+                self._discard_output(ser)
+                try:
+                    ser.close()
+                except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
+                    pass
             self.log.info("%s closed", self.url)
         if self._hold is not None:
             self._hold.let_go_if_gone()
+
+    def _await_output(self, ser) -> None:
+        """Wait, at most ``write_timeout_s`` (as a command's write may), for bytes still unsent.
+
+        Why: Linux's last close of a serial port waits for its unsent output up to the port's
+        closing_wait, 30 s by default: an adapter whose output had stopped (wedged) held a
+        command that close long after the tube's state was said, its stop signals ignored by
+        then. Every command is drained as it is sent (``ser.flush()``), so bytes left now are a
+        wedged port's, not a command's still leaving."""
+        deadline = time.monotonic() + self.write_timeout_s
+        while _unsent(ser) and time.monotonic() < deadline:
+            time.sleep(_CLOSE_POLL_S)
+
+    def _discard_output(self, ser) -> None:
+        """Drop the bytes still unsent, so that closing the port does not wait for them, and say so."""
+        left = _unsent(ser)
+        if left:
+            with contextlib.suppress(serial.SerialException, OSError, ValueError, AttributeError):
+                ser.reset_output_buffer()
+            self.log.warning(
+                "%s: %d bytes still unsent after %.1f s (the port's output is not draining) were "
+                "discarded, so that closing the port does not wait for them (up to 30 s on Linux)",
+                self.url,
+                left,
+                self.write_timeout_s,
+            )
 
     def __enter__(self) -> SerialTransport:
         return self

@@ -1949,8 +1949,17 @@ def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
-    with _printable_names(), _signals_given_back(argv is not None):
+    with _printable_names(), _signals_given_back(True):
         return _main(argv)
+
+
+def script() -> int:
+    """The ``radiokit`` console script: :func:`main` on the command line's arguments, except that
+    a finished ``acquire`` leaves the stop signals ignored until the process exits (see
+    :func:`_signals_given_back`). Only for a process that ends as it returns: a Python program
+    that goes on calls :func:`main`, which gives its handlers back however it ends."""
+    with _printable_names(), _signals_given_back(False):
+        return _main(None)
 
 
 #: The signals a command may take over (radiokit.interrupts.STOP_SIGNALS, and acquire's Ctrl-Z).
@@ -1961,11 +1970,13 @@ _TAKEN = tuple(
 
 @contextlib.contextmanager
 def _signals_given_back(give: bool):
-    """With ``give`` (``main(argv)`` called from a Python program, which goes on after it), the
-    signals' handlers put back as they were found. Not for the program itself (``argv`` None): a
-    finished ``acquire`` leaves them ignored until the process exits (its guard's ``finish``),
-    since Python's own finalization turns a Python handler back into the default action, and a
-    Ctrl-C then ended a complete series by SIGINT."""
+    """With ``give`` (:func:`main`, called from a Python program, which goes on after it, with or
+    without argv), the signals' handlers put back as they were found: a lab script calling
+    ``main()`` with no argv was left with Ctrl-C and kill ignored (session 52). Not for the console
+    script (:func:`script`), whose process ends as it returns: a finished ``acquire`` leaves them
+    ignored until the process exits (its guard's ``finish``), since Python's own finalization
+    turns a Python handler back into the default action, and a Ctrl-C then ended a complete
+    series by SIGINT."""
     found = {}
     if give and _on_main_thread():
         found = {sig: signal.getsignal(sig) for sig in _TAKEN}

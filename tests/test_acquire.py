@@ -1976,8 +1976,8 @@ def test_ctrl_c_while_radiokit_starts_is_one_line_exit_130(tmp_path, module):
         "            os.kill(os.getpid(), signal.SIGINT)\n"
         "sys.meta_path.insert(0, Stop())\n"
         f"sys.argv = ['radiokit', 'acquire', {str(tmp_path / 'p.toml')!r}, '--dry-run']\n"
-        "from radiokit.cli import main\n"
-        "sys.exit(main())\n"
+        "from radiokit.cli import script\n"
+        "sys.exit(script())\n"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 130, (res.returncode, res.stderr)

@@ -368,7 +368,7 @@ def test_ctrl_c_while_the_lab_run_waits_for_folder_frames_with_x_rays_on(tmp_pat
     )
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
-    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    code = "import sys; from radiokit.cli import script; sys.exit(script())"
     proc = subprocess.Popen(
         [sys.executable, "-c", code, "acquire", str(proto), "-q"],
         stdin=subprocess.PIPE,

@@ -88,7 +88,7 @@ class Lab:
 
     def start(self, *options):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        code = "import sys; from radiokit.cli import script; sys.exit(script())"
         self.vendor.start()
         self.proc = subprocess.Popen(
             [sys.executable, "-c", code, "acquire", str(self.proto), "-q", *options],

@@ -1683,3 +1683,39 @@ def test_register_figure_titles_lie_inside_the_figure(tmp_path, monkeypatch):
     assert len(boxes) == 4  # three panels and the colour bar
     for title, box, page in boxes:  # an axes' tight box holds its title
         assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, (title, box, page)
+
+
+@pytest.mark.parametrize("command", ["info", "--version", "acquire source status", "acquire source off"])
+def test_main_without_argv_gives_a_calling_program_its_stop_signals_back(tmp_path, monkeypatch, capsys, command):
+    """A lab script calling ``radiokit.cli.main()`` with no argv (its own sys.argv read) had SIGINT,
+    SIGTERM, SIGHUP, SIGQUIT and SIGTSTP left ignored once main returned (the X-ray guard's
+    ``finish``, meant for the console script's last moments) or left on the command line's own
+    handler: the script could no longer be stopped with Ctrl-C. Every way out -- an error line, an
+    argparse exit, an acquire command with its guard -- gives the caller's handlers back. Real
+    emulator on a pseudo-terminal."""
+    import signal
+
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit.cli import _TAKEN, main
+
+    def mine(signum, frame):  # the calling program's own handler
+        raise AssertionError("the caller's handler ran inside main")
+
+    before = {sig: signal.signal(sig, mine) for sig in _TAKEN}
+    try:
+        with PtyServer(L8121Model(warmed_up=True)) as server:
+            argv = {
+                "info": ["info", str(tmp_path / "missing.h5")],
+                "--version": ["--version"],
+            }.get(command) or [*command.split(), "--port", server.url, "--dialect", "A"]
+            monkeypatch.setattr(sys, "argv", ["radiokit", *argv])
+            try:
+                code = main()
+            except SystemExit as exc:  # --version: argparse's way out
+                code = exc.code
+            assert code == (2 if command == "info" else 0), capsys.readouterr()
+            after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert after == dict.fromkeys(_TAKEN, mine), after

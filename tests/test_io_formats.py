@@ -3022,7 +3022,7 @@ def test_a_micromanager_index_map_declaring_more_than_its_file_is_refused_withou
     path.write_bytes(bytes(out))
     code = (
         "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30)); "
-        "from radiokit.cli import main; sys.exit(main())"
+        "from radiokit.cli import script; sys.exit(script())"
     )
     res = subprocess.run([sys.executable, "-c", code, "info", str(path)], capture_output=True, text=True, timeout=120)
     one_line_error(res, path.name, said)

@@ -846,8 +846,8 @@ def test_xon_refused_before_warmup(cold, dialect):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
     with link(server, dialect) as lnk:
-        if dialect == "A":  # the emulator itself refuses too, and says why
-            assert [lnk.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 2", "STS 0"]
+        if dialect == "A":  # the emulator itself refuses too (SER stays 0: L8121.md ties no code to a refusal)
+            assert [lnk.query(c) for c in ("XON", "SER", "STS")] == ["ERROR", "SER 0", "STS 0"]
         else:  # B: STS alone looks ready; DAG says the warm-up is due (an XON now would start it)
             assert [lnk.query(c) for c in ("STS", "DAG")] == ["STANDBY", "AGING 1 0 YET"]
 
@@ -860,7 +860,8 @@ def test_xon_refused_with_interlock_open(warm, dialect, wire):
             src.on(60, 250)
     assert "XON" not in model.commands and not model.xray_on
     with link(server, dialect) as lnk:
-        assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 1"]
+        # (SER stays 0: L8121.md ties no code to a refusal or to the interlock)
+        assert [lnk.query(c) for c in ("SIN", "XON", "SER")] == [wire["interlock_open_reply"], "ERROR", "SER 0"]
 
 
 def test_not_ready_with_the_interlock_open_says_so(warm, dialect):
@@ -1928,7 +1929,7 @@ def test_emulator_a_accepts_xof_whatever_the_operate_switch(dialect, switch):
     if dialect == "A":
         assert m.handle("XOF") == "XOF" and not m.xray_on and m.handle("XON") == refused
     else:
-        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 7"
+        assert m.handle("XOF") == refused and m.xray_on and m.handle("SER") == "SER 0"  # no code of its own
 
 
 def test_b_on_refused_when_the_switch_is_local_after_connect():
@@ -3384,7 +3385,7 @@ def test_emulator_refuses():
         m.handle(c)
         for c in ("HIV 151", "HIV 39", "HIV 6O", "CUR 501", "CFS 9", "FOO", "STS 1", "XON 1", "PHV 600", "DAG")
     ] == ["ERR"] * 10
-    assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 4")  # 40 W
+    assert (m.handle("HIV 100"), m.handle("CUR 400"), m.handle("SER")) == ("HIV 100", "ERR", "SER 0")  # 40 W
     assert m.handle("") is None and m.set_ua == 0
     b = L8121Model(dialect="B", warmed_up=True)
     assert [
@@ -3429,14 +3430,14 @@ def test_emulator_scheduled_faults(dialect):
     assert m.measured() == (60, 0) and sts() == "STS 3"
     m.overload(at_s=m.time + 1)
     clock.t += 1
-    assert (sts(), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 3")
+    assert (sts(), m.handle("XON"), m.handle("SER")) == ("STS 4", "ERROR", "SER 0")  # L8121.md: no code for it
     assert (m.handle("RST"), sts()) == ("RST", "STS 2")
     m.require_warm_up()
     assert m.state == 0
     m.warm()
     assert m.state == 2
     m.set_operate_switch("LOCAL")
-    assert (m.handle("XON"), m.handle("SER"), sts()) == ("ERROR", "SER 7", "STS 2")
+    assert (m.handle("XON"), m.handle("SER"), sts()) == ("ERROR", "SER 0", "STS 2")
     m.set_operate_switch("REMOTE")
     m.silence()
     assert m.handle("STS") is None and m.log[-1].reply is None
@@ -5353,3 +5354,114 @@ def test_a_refused_exposure_prints_a_tightened_limit_with_the_digits_that_part_i
     # a limit far from the value keeps its short form
     with pytest.raises(ValueError, match=r"outside kv_min\.\.kv_max = 40\.\.150 kV"):
         SourceConfig().check_exposure(20, 100)
+
+
+def test_the_emulator_s_main_gives_sigterm_back_as_it_returns(capsys):
+    """``acquisition.emulators.l8121.main`` called from a Python program (a lab script serving an
+    emulator for a dry run) left its own SIGTERM handler in place after it returned: a later
+    ``kill`` raised a KeyboardInterrupt wherever the program was. Stopped by a real SIGTERM here."""
+    import os
+    import signal
+    import threading
+
+    from acquisition.emulators.l8121 import main
+
+    def mine(signum, frame):  # the calling program's own handler (one sent before main took over)
+        pass
+
+    def stop():  # until main has returned: the first one may come before main's handler is in place
+        while not done.wait(0.2):
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    done = threading.Event()
+    before = signal.signal(signal.SIGTERM, mine)
+    sender = threading.Thread(target=stop, daemon=True)
+    sender.start()
+    try:
+        assert main(["--socket", "0"]) == 0
+        after = signal.getsignal(signal.SIGTERM)
+    finally:
+        done.set()
+        sender.join()  # no SIGTERM after the test's own handler is back
+        signal.signal(signal.SIGTERM, before)
+    assert capsys.readouterr().out.startswith("socket://127.0.0.1:")
+    assert after is mine
+
+
+class _WedgedOutput:
+    """The one fake here: a real pyserial port whose output does not drain (a wedged USB adapter,
+    its transmitter stuck). Linux's close of such a port waits for the bytes up to the port's
+    closing_wait, 30 s by default, with the command's stop signals ignored by then (its outcome
+    said); a pseudo-terminal never holds output back, so the wait is modelled here, ``wait_s``
+    long, while bytes are unsent."""
+
+    def __init__(self, ser, unsent: int, wait_s: float):
+        self._ser, self.unsent, self.wait_s = ser, unsent, wait_s
+
+    def __getattr__(self, name):
+        return getattr(self._ser, name)
+
+    @property
+    def out_waiting(self) -> int:
+        return self.unsent
+
+    def reset_output_buffer(self) -> None:
+        self.unsent = 0
+        self._ser.reset_output_buffer()
+
+    def close(self) -> None:
+        if self.unsent:
+            time.sleep(self.wait_s)
+        self._ser.close()
+
+
+def test_closing_a_port_whose_output_does_not_drain_waits_the_write_time_out_at_most(caplog):
+    """A port whose output did not drain (a wedged adapter) made close() wait up to Linux's
+    closing_wait, 30 s, after the tube had been confirmed off, Ctrl-C ignored by then. The close
+    now waits for unsent bytes as long as a command's write may (``write_timeout_s``), then
+    discards them and says so in the log: the tube's state is settled, nothing they held is owed."""
+    write_timeout_s, wait_s = 0.2, 3.0
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        assert link.query("STS") == "STS 2"
+        real = link._serial
+        link._serial = _WedgedOutput(real, unsent=4, wait_s=wait_s)
+        t0 = time.monotonic()
+        with caplog.at_level(logging.WARNING, logger="acquisition.transport"):
+            link.close()
+        took = time.monotonic() - t0
+    assert write_timeout_s <= took < write_timeout_s + 0.5 < wait_s, took
+    assert not real.is_open and not link.is_open
+    said = [r.getMessage() for r in caplog.records if "unsent" in r.getMessage()]
+    assert len(said) == 1 and server.url in said[0] and "4 bytes" in said[0], caplog.text
+
+
+def test_a_stop_as_source_off_builds_its_driver_still_switches_off(dialect, monkeypatch, capsys):
+    """A stop (a real SIGTERM) that landed while `source off` built its own driver, before any
+    connect, ended on "stopped by SIGTERM; WARNING: X-RAYS MAY STILL BE ON" with nothing sent --
+    exit 130 beside the warning -- a tube left on (other software, a crash) on still. The port
+    is there (the command holds its lock): the switch-off asked for is sent all the same and
+    confirmed by STS, exit 128 + 15. Real emulator on a pty; the signal is raised where the
+    driver reads its configuration."""
+    import acquisition.l8121 as driver
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True)
+    model.handle({"A": "HIV 60", "B": "PHV 600"}[dialect]), model.handle("XON")  # left on by an earlier session
+    assert model.xray_on
+    real, raised = driver.SourceConfig.from_dict, []
+
+    def from_dict(cls, data):
+        if not raised:
+            raised.append(True)
+            signal.raise_signal(signal.SIGTERM)  # the guard's handler raises its StopSignal here
+        return real(data)
+
+    monkeypatch.setattr(driver.SourceConfig, "from_dict", classmethod(from_dict))
+    with PtyServer(model) as server:
+        code = main(["acquire", "source", "off", "--port", server.url, "--dialect", dialect])
+    out, err = capsys.readouterr()
+    assert raised and code == 128 + signal.SIGTERM, (code, out, err)
+    assert not model.xray_on and "XOF" in model.commands, err
+    assert "WARNING" not in out + err and "please wait" in err, (out, err)
+    assert re.search(r"X-rays off \(confirmed", out.strip().splitlines()[-1]), (out, err)

@@ -81,13 +81,51 @@ def test_once_the_fault_is_cleared_at_the_unit_the_same_driver_switches_on(diale
     assert "RST" not in model.commands
 
 
-def test_a_refusal_of_the_emulators_own_is_not_taken_for_a_fault(dialect):
-    """The emulator's SER also says why its last command was refused (its own codes): a refused
-    XON (the interlock was open) must not block the next on() once the interlock is closed."""
+def test_the_emulators_ser_follows_l8121_md(dialect):
+    """L8121.md: B's ``SER n`` is the control-board error, 0 none, 1-4 relay or internal faults;
+    A's the "controller error code, 0 none". The emulator used 1-4 for interlock, warm-up, overload
+    and range, added 5-7 of its own, and set them at every refusal: a unit the notes do not
+    describe. Now SER reads 0 through refusals, an interlock opening and an overload (the notes tie
+    no command or state to it); an injected fault reads as itself, B's only among 1-4, and nothing
+    sent clears it (not RST, not a setting) until it is cleared at the unit."""
+    model = L8121Model(dialect=dialect, warmup_s=0, ramp_s=0, warmed_up=True)
+    refused = "ERR" if dialect == "A" else "ERROR"
+    voltage = {"A": "HIV", "B": "PHV"}[dialect]
+    assert model.handle("XON") == "XON" and model.handle("XOF") == "XOF"
+    model.open_interlock()
+    assert model.handle("XON") == "ERROR" and model.handle("SER") == "SER 0"
+    assert model.handle(f"{voltage} 9999") == refused and model.handle("NOPE") == refused
+    model.close_interlock()
+    assert model.handle("XON") == "XON"
+    model.open_interlock()  # the beam dropped by the interlock
+    assert not model.xray_on and model.handle("SER") == "SER 0"
+    model.close_interlock()
+    model.overload()
+    assert model.handle("SER") == "SER 0" and model.handle("RST") == "RST"
+    for code in (1, 2, 3, 4):
+        model.controller_error(code)
+        assert model.handle("SER") == f"SER {code}"
+    for cleared_by_nothing in ("RST", f"{voltage} 600" if dialect == "B" else f"{voltage} 60", "XOF"):
+        model.handle(cleared_by_nothing)
+        assert model.handle("SER") == "SER 4", cleared_by_nothing
+    if dialect == "B":
+        for code in (5, 7):
+            with pytest.raises(ValueError, match="1-4"):
+                model.controller_error(code)
+    else:  # A's codes have no table: any is what the unit may report
+        model.controller_error(9)
+        assert model.handle("SER") == "SER 9"
+    model.controller_error(0)
+    assert model.handle("SER") == "SER 0"
+
+
+def test_a_refused_xon_is_no_fault(dialect):
+    """A refused XON (the interlock was open) must not block the next on() once the interlock is
+    closed: the refusal leaves SER at 0."""
     model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
     assert model.handle("XON") == "XON" and model.handle("XOF") == "XOF"
     model.open_interlock()
-    assert model.handle("XON") == "ERROR" and model.handle("SER") != "SER 0"
+    assert model.handle("XON") == "ERROR"
     model.close_interlock()
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **FAST) as src:
         src.on(60, 250)
@@ -95,7 +133,9 @@ def test_a_refusal_of_the_emulators_own_is_not_taken_for_a_fault(dialect):
         src.off()
 
 
-@pytest.mark.parametrize("code", [1, 3])
+# 7: beyond B's 1-4 in L8121.md (a unit may differ): the driver stays generic, any code not 0 and
+# not allowed by the configuration refuses (the independent model reports what it is given)
+@pytest.mark.parametrize("code", [1, 3, 7])
 def test_on_refuses_while_the_independent_model_reports_a_controller_error(dialect, code):
     with Controller(dialect, warmup_s=0.3, ramp_s=0.2, error_code=code) as unit:
         unit.ready(warmed=True)
@@ -103,6 +143,7 @@ def test_on_refuses_while_the_independent_model_reports_a_controller_error(diale
             with pytest.raises(SourceFault) as err:
                 src.on(60, 250)
             _refusal_names_the_fault(err.value, dialect, code)
+            assert ("not among L8121.md's dialect B codes" in str(err.value)) == (dialect == "B" and code > 4)
             assert not unit.emitting
         assert unit.emissions == [] and not unit.lost
         assert "RST" not in [line for _, line, _ in unit.log]
@@ -127,8 +168,8 @@ def test_a_code_the_configuration_allows_and_a_unit_without_ser(dialect):
     from acquisition.l8121 import SourceConfig
 
     model = L8121Model(dialect=dialect, warmup_s=0.2, ramp_s=0.1, warmed_up=True)
-    model.controller_error(5)
-    with PtyServer(model) as server, L8121(server.url, dialect=dialect, allowed_error_codes=[5], **FAST) as src:
+    model.controller_error(4)
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, allowed_error_codes=[4], **FAST) as src:
         src.on(60, 250)
         assert model.xray_on
         src.off()

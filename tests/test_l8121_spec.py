@@ -476,7 +476,7 @@ def test_a_signal_during_source_warm_up_switches_the_tube_off(dialect, sig):
     on (SIGHUP) or interrupted (Ctrl-C, Ctrl-\\) while the warm-up runs must leave the tube off, confirmed,
     and say so in one line, without a traceback."""
     model = SpecModel(dialect, warmup_s=60.0)
-    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    code = "import sys; from radiokit.cli import script; sys.exit(script())"
     with served(model) as pty:
         argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
         proc = subprocess.Popen(
@@ -570,7 +570,7 @@ def test_a_signal_during_a_failing_switch_off_never_reports_the_tube_off(dialect
     off at the controller, never that the tube is off or that no X-ray command was sent."""
     model = SpecModel(dialect, warmup_s=60.0)
     model.interlock_stops_beam = False
-    code = "import sys; from radiokit.cli import main; sys.exit(main())"
+    code = "import sys; from radiokit.cli import script; sys.exit(script())"
     with served(model) as pty:
         argv = ["acquire", "source", "warm-up", "--port", pty.url, "--dialect", dialect, "-q"]
         proc = subprocess.Popen([sys.executable, "-c", code, *argv], stderr=subprocess.PIPE, text=True)

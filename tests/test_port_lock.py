@@ -98,7 +98,7 @@ def test_the_guardian_keeps_the_commands_hold_and_its_switch_off_is_not_refused(
     off; once it has exited the port is free."""
     model = L8121Model(dialect="A", warmed_up=False, warmup_s=30.0, ramp_s=0.05)
     with PtyServer(model) as server:
-        main = "import sys; from radiokit.cli import main; sys.exit(main())"
+        main = "import sys; from radiokit.cli import script; sys.exit(script())"
         cmd = [sys.executable, "-c", main, "acquire", "source", "warm-up", "--port", server.url]
         proc = subprocess.Popen(cmd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:

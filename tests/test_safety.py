@@ -159,11 +159,11 @@ class Acquire:
     def __init__(self, *args, sigint_ignored=False, fsize_limit=None, own_session=True, record_imports=None):
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
         # sigint_ignored: started as a background job of a non-interactive shell is (SIG_IGN inherited)
-        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        code = "import sys; from radiokit.cli import script; sys.exit(script())"
         if record_imports is not None:  # what the command first imports while X-rays may be on (imports_recorder)
             code = (
                 f"import sys; sys.path.insert(0, {str(ROOT / 'tests')!r}); import imports_recorder; "
-                f"imports_recorder.install({str(record_imports)!r}); from radiokit.cli import main; sys.exit(main())"
+                f"imports_recorder.install({str(record_imports)!r}); from radiokit.cli import script; sys.exit(script())"
             )
         if sigint_ignored:  # the disposition survives exec, as a shell's does
             code = (
@@ -768,6 +768,35 @@ def test_source_probe_at_power_on_waits_out_bs_pre_heating(controller, warm_up_d
     assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE", "SER", "SPV", "SPC", "SHV", "SCU"}, (
         model.commands
     )
+
+
+@pytest.mark.parametrize("controller", ["B"], indirect=True)
+def test_a_stop_between_the_probe_s_report_and_its_power_on_wait_says_the_tube_s_state(controller, monkeypatch):
+    """A stop (a real SIGTERM) that came after `source probe` had printed its report of a B unit in
+    its power-on checks (STS ERROR) and before the wait for them began ended on Python's generic
+    "interrupted", exit 143: not a word of the tube, which no STS had read off. It ends as a stop
+    during that wait does: the state the probe's STS read, the warning, exit 3. The signal is
+    raised as the probe's end is entered."""
+    from conftest import run_cli
+
+    import acquisition.cli as cli
+    from acquisition.guardian import TUBE_WARNING
+
+    model, server = controller()
+    model.sts_error()
+    real = cli._probe_found
+
+    def stopped_first(*args):
+        signal.raise_signal(signal.SIGTERM)  # the guard's handler raises its StopSignal here
+        return real(*args)
+
+    monkeypatch.setattr(cli, "_probe_found", stopped_first)
+    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600", "--ready-timeout", "1")
+    assert res.returncode == 3, (res.returncode, res.stdout, res.stderr)
+    assert "dialect B" in res.stdout and res.stderr.strip().splitlines()[-1] == TUBE_WARNING, res.stderr
+    assert "stopped by SIGTERM" in res.stderr and "state ERROR" in res.stderr, res.stderr
+    assert "interrupted" not in res.stderr.replace("stopped by", ""), res.stderr
+    assert set(model.commands) <= {"STS", "SIN", "SRL", "DAG", "TYP", "SWE"}, model.commands  # queries only
 
 
 def _stop_signals_of(pid) -> dict:

@@ -87,7 +87,7 @@ def test_a_stop_between_newton_iterations_ends_the_run_at_once(tmp_path):
     the handler runs only when it returns: seed-breast's take well under a second."""
     out = tmp_path / "sim.h5"
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from radiokit.cli import main; sys.exit(main())", "sim", "run"]
+        [sys.executable, "-c", "import sys; from radiokit.cli import script; sys.exit(script())", "sim", "run"]
         + ["--preset", "seed-breast", "-o", str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

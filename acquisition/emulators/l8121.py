@@ -18,7 +18,7 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
-:meth:`~L8121Model.controller_error` (``SER`` reports a fault that nothing sent clears),
+:meth:`~L8121Model.controller_error` (``SER`` reports a control-board fault that nothing sent clears),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
 control commands refused with ``ERROR``, A's always accepted ``XOF`` excepted; B reports it with
 ``SRL``) and
@@ -37,17 +37,21 @@ shell::
 
     python -m acquisition.emulators.l8121 --pty --dialect B --warmup-s 2   # prints /dev/pts/N
 
-Error codes (``SER``) are this emulator's own; the real controller's are not documented:
-0 none, 1 interlock open, 2 warm-up needed, 3 overload, 4 value out of range, 5 unknown command,
-6 wrong state, 7 operate switch not on REMOTE -- why the last command was refused (or the beam
-dropped), kept until a setting is accepted or ``RST``. A fault injected with
-:meth:`~L8121Model.controller_error` is reported before them and stays.
+Error codes (``SER``) follow ``L8121.md``: dialect B's ``SER n`` is the control-board error, 0
+none, 1-4 relay or internal faults; dialect A's is the "controller error code, 0 none", its other
+codes given no meaning. ``SER`` reads 0 unless such a fault is injected
+(:meth:`~L8121Model.controller_error`: in B one of 1-4, in A any code). Where ``L8121.md`` is
+silent, the emulator does nothing of its own: it ties no command, refusal, interlock or overload
+to ``SER`` (a refused command answers ``ERR``/``ERROR`` and leaves ``SER`` as it was), and nothing
+sent clears a fault -- not ``RST``, not a setting -- only ``controller_error(0)``. (Before session
+52 it used 1-4 for interlock, warm-up, overload and range and added 5-7 of its own, and its
+docstring called the real codes undocumented.)
 
 Examples
 --------
 >>> m = L8121Model(warmup_s=0, ramp_s=0)
 >>> m.handle("TYP"), m.handle("XON"), m.handle("SER")
-('TYP L8121-01', 'ERROR', 'SER 2')
+('TYP L8121-01', 'ERROR', 'SER 0')
 >>> m.handle("WUP"), m.handle("STS"), m.handle("HIV 60"), m.handle("CUR 250"), m.handle("XON")
 ('WUP', 'STS 2', 'HIV 60', 'CUR 250', 'XON')
 >>> m.handle("SAR"), m.xray_on
@@ -76,7 +80,6 @@ import time
 import tty
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import IntEnum
 
 from acquisition.l8121 import SourceState, WarmupState
 
@@ -85,17 +88,8 @@ __all__ = ["L8121Model", "PtyServer", "SocketServer", "Exchange", "main", "DEFAU
 logger = logging.getLogger(__name__)
 
 
-class ErrorCode(IntEnum):
-    """What ``SER`` answers: this emulator's own codes (the real controller's are not documented)."""
-
-    NONE = 0
-    INTERLOCK = 1
-    WARMUP = 2
-    OVERLOAD = 3
-    RANGE = 4
-    UNKNOWN = 5
-    STATE = 6
-    LOCAL = 7
+#: Dialect B's ``SER`` codes other than 0 (L8121.md: "1-4 relay or internal faults").
+B_FAULT_CODES = (1, 2, 3, 4)
 
 
 DEFAULT_BAUD = {"A": 9600, "B": 9600}
@@ -206,8 +200,7 @@ class L8121Model:
         self._runaway = (1.0, 1.0)  # measured kV, µA factors of a runaway beam (runaway())
         self._interlock_open = False
         self._focus = 0
-        self._error = ErrorCode.NONE
-        self._fault = 0  # a controller fault SER reports before any refusal's code (controller_error)
+        self._fault = 0  # the control-board fault SER reports (controller_error); 0 none
         self._switch = "REMOTE"
         self._silent = self._garbage = self._stuck = self._foreign = self._sts_error = False
         self._lower_case = False
@@ -244,17 +237,17 @@ class L8121Model:
             "SWE": lambda t: f"SWE {self._warmup:d}",
             "SPH": lambda t: f"SPH {int(self._state == SourceState.WARMING_UP)}",
             "SFC": lambda t: f"SFC {self._focus}",
-            "SER": lambda t: f"SER {self._fault or self._error:d}",
+            "SER": lambda t: f"SER {self._fault:d}",
             "TYP": lambda t: f"TYP {self.model}",
         }
         return commands, {"HIV", "CUR", "CFS"}
 
     def _front_end_b(self):
         def on_only(fn):  # HIV, CUR: while X-rays are on
-            return lambda t, arg: fn(t, arg) if self._state == SourceState.XRAY_ON else self._refuse(ErrorCode.STATE)
+            return lambda t, arg: fn(t, arg) if self._state == SourceState.XRAY_ON else self._refuse()
 
         def off_only(fn):  # the presets PHV, PCU: while the tube does not emit
-            return lambda t, arg: fn(t, arg) if not self._state.emitting else self._refuse(ErrorCode.STATE)
+            return lambda t, arg: fn(t, arg) if not self._state.emitting else self._refuse()
 
         commands = {
             "HIV": on_only(self._hiv),
@@ -275,7 +268,7 @@ class L8121Model:
             "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",
             "DAG": self._dag,
             "SFS": lambda t: _B_FOCUS[self._focus],
-            "SER": lambda t: f"SER {self._fault or self._error:d}",
+            "SER": lambda t: f"SER {self._fault:d}",
             "SRL": lambda t: self._switch,
             "SRB": lambda t: "BUSY" if self._state == SourceState.WARMING_UP else "READY",
         }
@@ -335,17 +328,16 @@ class L8121Model:
     def open_interlock(self, at_s: float | None = None) -> None:
         """Open the interlock chain now, or at model time ``at_s``.
 
-        With X-rays on, the controller drops the beam: standby, interlock open, error code 1. A
-        running warm-up stops (warm-up needed again).
+        With X-rays on, the controller drops the beam: standby, interlock open, ``SER`` as it was
+        (L8121.md ties no code to it). A running warm-up stops (warm-up needed again).
         """
 
         def fault(t):
             self._interlock_open = True
             if self._state == SourceState.XRAY_ON:
-                self._state, self._error = SourceState.STANDBY, ErrorCode.INTERLOCK
+                self._state = SourceState.STANDBY
             elif self._state == SourceState.WARMING_UP:
                 self._state, self._warmup = SourceState.WARMUP_NEEDED, WarmupState.NOT_STARTED
-                self._error = ErrorCode.INTERLOCK
 
         self._at(at_s, fault)
 
@@ -359,10 +351,10 @@ class L8121Model:
 
     def overload(self, at_s: float | None = None) -> None:
         """Trip the overload protection now, or at model time ``at_s``: state 4 (B ``OVER``), beam
-        off, error 3. Only ``RST`` leaves the overload state."""
+        off, ``SER`` as it was (L8121.md ties no code to it). Only ``RST`` leaves the overload state."""
 
         def fault(t):
-            self._state, self._error = SourceState.OVERLOAD, ErrorCode.OVERLOAD
+            self._state = SourceState.OVERLOAD
 
         self._at(at_s, fault)
 
@@ -375,6 +367,11 @@ class L8121Model:
         service at the unit."""
         if int(code) < 0:
             raise ValueError(f"controller error code {code}: expected 0 (none) or more")
+        if self.dialect == "B" and int(code) not in (0, *B_FAULT_CODES):
+            raise ValueError(
+                f"controller error code {code}: L8121.md gives dialect B's SER 0 (none) and 1-4 (relay or "
+                "internal faults) only"
+            )
 
         def fault(t):
             self._fault = int(code)
@@ -662,26 +659,19 @@ class L8121Model:
             return "ERROR", False
         action = self._commands.get(word)
         if action is None or len(args) != (word in self._takes_argument):
-            return self._refuse(ErrorCode.UNKNOWN, "ERR" if self.dialect == "A" else "ERROR"), False
+            return self._refuse("ERR" if self.dialect == "A" else "ERROR"), False
         # L8121.md, dialect A: "XOF ... always accepted" -- not in remote mode too. B's notes say
         # only that remote control needs REMOTE, with no exception: B refuses its XOF there
         if word in _CONTROL and self._switch != "REMOTE" and not (word == "XOF" and self.dialect == "A"):
-            return self._refuse(ErrorCode.LOCAL), False
-        reply = action(t, *args)
-        if word in _SETTINGS and reply not in ("ERR", "ERROR"):
-            # a refusal's code says why the last command was refused, not that the unit is faulty:
-            # a setting taken is a new start. Kept otherwise (XOF included: a trip's message reads
-            # why the beam went), and the driver, which refuses XON on any code but 0, reads SER
-            # after setting the values it will emit at
-            self._error = ErrorCode.NONE
-        return reply, True
+            return self._refuse(), False
+        return action(t, *args), True
 
-    def _refuse(self, code: ErrorCode, reply: str = "ERROR") -> str:
-        self._error = code
+    def _refuse(self, reply: str = "ERROR") -> str:
+        """A refusal: its reply alone. L8121.md ties no refusal to ``SER``, which stays as it was."""
         return reply
 
     def _range_error(self) -> str:
-        return self._refuse(ErrorCode.RANGE, "ERR" if self.dialect == "A" else "ERROR")
+        return self._refuse("ERR" if self.dialect == "A" else "ERROR")
 
     def _hiv(self, t, arg, word="HIV"):
         raw = _whole(arg)
@@ -700,28 +690,16 @@ class L8121Model:
         self._set_ua = ua
         return f"{word} {ua}"
 
-    def _why_not_on(self) -> ErrorCode:
-        off = (SourceState.STANDBY, SourceState.WARMUP_NEEDED)
-        return (
-            ErrorCode.INTERLOCK
-            if self._interlock_open and self._state in off
-            else ErrorCode.WARMUP
-            if self._state in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP)
-            else ErrorCode.OVERLOAD
-            if self._state == SourceState.OVERLOAD
-            else ErrorCode.STATE
-        )
-
     def _xon_a(self, t):
         if self._state != SourceState.STANDBY or self._interlock_open:
-            return self._refuse(self._why_not_on())
+            return self._refuse()
         self._switch_on(t)
         return "XON"
 
     def _xon_b(self, t):
         """Dialect B: ``XON`` starts the warm-up when one is due, the exposure otherwise."""
         if self._interlock_open or self._state not in (SourceState.STANDBY, SourceState.WARMUP_NEEDED):
-            return self._refuse(self._why_not_on())
+            return self._refuse()
         if self._state == SourceState.WARMUP_NEEDED:
             self._start_warm_up(t)
         else:
@@ -754,9 +732,9 @@ class L8121Model:
 
     def _wup(self, t):
         if self._state not in (SourceState.WARMUP_NEEDED, SourceState.STANDBY, SourceState.WARMING_UP):
-            return self._refuse(ErrorCode.STATE)
+            return self._refuse()
         if self._interlock_open:
-            return self._refuse(ErrorCode.INTERLOCK)
+            return self._refuse()
         if self._state != SourceState.WARMING_UP and self._start_lag_s > 0:
             if math.isfinite(self._start_lag_s):
                 self._schedule(t + self._start_lag_s, self._start_late)
@@ -793,8 +771,7 @@ class L8121Model:
     def _rst(self, t):
         if self._state == SourceState.OVERLOAD:
             self._state = SourceState.STANDBY if self._warmup == WarmupState.DONE else SourceState.WARMUP_NEEDED
-        self._error = ErrorCode.NONE
-        return "RST"
+        return "RST"  # a control-board fault stays (L8121.md gives RST for an overload only)
 
     def _cfs(self, t, arg):
         mode = _whole(arg)
@@ -1093,7 +1070,8 @@ def main(argv: list[str] | None = None) -> int:
     def terminate(signum, frame):
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, terminate)
+    # given back as it returns: a Python program that serves an emulator for a while goes on after it
+    before = signal.signal(signal.SIGTERM, terminate)
     try:
         with server:
             print(server.url, flush=True)
@@ -1101,6 +1079,8 @@ def main(argv: list[str] | None = None) -> int:
                 time.sleep(3600)
     except KeyboardInterrupt:
         pass
+    finally:
+        signal.signal(signal.SIGTERM, before)
     return 0
 
 
