@@ -271,6 +271,11 @@ def run_one(seed) -> dict:
         "interior_observed": q.interior_observed, "excess_kept": q.excess_kept,
         "misaligned": q.misaligned_fraction, "residual_motion": q.residual_motion,
         "affine_bound": _affine_bound(f, m),
+        # session 52's rim check: its statistic, the backward run's inconsistency and time, and
+        # whether it flagged a result the other checks trusted (ok before it: ok or rim_flagged)
+        "rim_share": q.rim_share, "inconsistency": q.inconsistency,
+        "rim_seconds": reg.options["rim_check"]["seconds"],
+        "rim_flagged": bool(reg.options["rim_check"]["run"] and not q.ok),
     }  # fmt: skip
 
 
@@ -298,6 +303,14 @@ def report(rows) -> None:
         print(f"failed flagged: {sum(not r['ok'] for r in failed) / len(failed):.0%} (issue 11: >= 95 %)")
     if good:
         print(f"good trusted:   {sum(r['ok'] for r in good) / len(good):.0%} (issue 11: >= 90 %)")
+    before = [r for r in rows if r.get("rim_flagged")]
+    if before:
+        print(f"the rim check flagged {len(before)} results the other checks trusted:")
+        print("\n".join(f"  seed {r['seed']}: EPE {r['epe']:.2f} (identity {r['id_epe']:.2f}), rim_share"
+                        f" {r['rim_share']:.2f}, inconsistency {r['inconsistency']:.2f} px" for r in before))  # fmt: skip
+    secs = [r["rim_seconds"] for r in rows if r.get("rim_seconds")]
+    if secs:
+        print(f"backward runs: {len(secs)}, median {np.median(secs):.2f} s, max {max(secs):.2f} s")
     print("\nTRUSTED FAILURES (ok True, failed):")
     print("\n".join(_line(r) for r in failed if r["ok"]) or "  none")
     print("\nFALSE ALARMS (ok False, good):")

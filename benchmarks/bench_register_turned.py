@@ -153,6 +153,12 @@ def run(seed, cache, presets=PRESETS):
                 q.interior_observed < 0.5 and q.body_scale <= 0.3 and chosen.split("+")[0] in ("silent", "silent-fast")
             ),
             "chosen": chosen,
+            # session 52's rim check (register()'s default): its statistic, the backward run's
+            # inconsistency and time, and whether it flagged a result the other checks trusted
+            "rim_share": float(q.rim_share),
+            "inconsistency": float(q.inconsistency),
+            "rim_seconds": float(reg.options["rim_check"]["seconds"]),
+            "rim_flagged": bool(reg.options["rim_check"]["run"] and not q.ok),
         }
     cache[key] = out
     return out
