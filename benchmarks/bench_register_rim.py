@@ -148,10 +148,13 @@ def report(rows, shares, fb, gate, line):
     return rows
 
 
-def turned(out):
+def turned(out, split):
     """``bench_register_turned.py``'s results (registered by ``register()``, which runs the check):
     before = the other checks' verdict (a result the check flagged was trusted by them)."""
-    res = json.loads((out / "results.json").read_text())
+    import bench_register_turned as T
+
+    cache = json.loads((out / "results.json").read_text())
+    res = {str(seed): cache[str(seed)] for seed in T.SEEDS[split] if str(seed) in cache}
     print("| preset | before: failed flagged, good trusted | after | gate open (trusted) | backward s median / max |")
     print("|---|---|---|---|---|")
     for preset in ("auto", "silent"):
@@ -192,7 +195,7 @@ def main(argv=None) -> int:
 
     load_methods()
     if a.source == "turned":
-        return turned(a.out or Path("out/turned"))
+        return turned(a.out or Path("out/turned"), a.split)
     if a.source == "phantoms":
         out = a.out or Path("out/phantoms")
         rows, shares = phantom_rows(out, a.split)
