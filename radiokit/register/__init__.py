@@ -1311,7 +1311,8 @@ def _rim_check(reg, f, m, mask, options) -> None:
         q.reason = (
             f"{100 * q.rim_share:.0f} % of the observed interior is one-directional structure (a rim, an edge), "
             "whose motion along itself the map credits but no window pins, and registering the pair backward "
-            f"(rc, preset {opts.get('preset')}) does not undo this field: {q.inconsistency:.2f} px "
+            f"({reg.method}{', preset ' + str(opts['preset']) if 'preset' in opts else ''}) does not undo this "
+            f"field: {q.inconsistency:.2f} px "
             f"(median of d + e(x + d) over the object; > {OBSERVED_PX:g}): the field along the rim is the prior's guess"
         )
 
