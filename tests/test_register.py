@@ -3677,12 +3677,12 @@ def test_a_trusted_field_that_slides_along_a_textureless_slabs_rims_is_flagged_b
 
 
 def test_the_rim_check_does_not_run_on_a_textured_pair():
-    """Texture makes the interior's windows two-dimensional: the gate stays shut, nothing is
+    """``register(..., rim_check=True)``: texture makes the interior's windows two-dimensional: the gate stays shut, nothing is
     registered twice, and the result is judged by the other checks alone."""
     from radiokit.register import _RIM_GATE
 
     f, m = _unmoved_slab(texture=0.1)
-    reg = register(f, m, preset="fast")
+    reg = register(f, m, preset="fast", rim_check=True)
     assert reg.quality.rim_share < _RIM_GATE
     assert reg.options["rim_check"] == {"run": False, "seconds": 0.0}
     assert reg.quality.ok and np.isnan(reg.quality.inconsistency)
