@@ -51,6 +51,9 @@ PICTURES = ("camera", "moon", "coins", "brick", "grass", "gravel")
 MOTIONS = ("shift", "rotation", "scaling", "compression", "random", "none")
 TEXTURES = ("none", "fine", "coarse", "picture")
 
+_NOT_RUN = {"run": False, "seconds": 0.0}  # register(..., rim_check=False), the default
+RIM_CHECK = [False]  # --rim-check: session 52's opt-in check (register(..., rim_check=True))
+
 
 def _softsqrt(u, soft):
     """``sqrt(max(u, 0))`` with its edge rounded over ``soft`` (u's units): a chord whose edge a
@@ -257,7 +260,7 @@ def run_one(seed) -> dict:
 
     f, m, d, body, p = make_pair(seed)
     t = time.perf_counter()
-    reg = register(f, m, preset="auto")
+    reg = register(f, m, preset="auto", rim_check=RIM_CHECK[0])
     seconds = time.perf_counter() - t
     err = np.hypot(*(reg.displacement - d))
     obs = body & (reg.confidence >= 0.5)
@@ -271,6 +274,11 @@ def run_one(seed) -> dict:
         "interior_observed": q.interior_observed, "excess_kept": q.excess_kept,
         "misaligned": q.misaligned_fraction, "residual_motion": q.residual_motion,
         "affine_bound": _affine_bound(f, m),
+        # session 52's rim check: its statistic, the backward run's inconsistency and time, and
+        # whether it flagged a result the other checks trusted (ok before it: ok or rim_flagged)
+        "rim_share": q.rim_share, "inconsistency": q.inconsistency,
+        "rim_seconds": reg.options.get("rim_check", _NOT_RUN)["seconds"],
+        "rim_flagged": bool(reg.options.get("rim_check", _NOT_RUN)["run"] and not q.ok),
     }  # fmt: skip
 
 
@@ -298,6 +306,14 @@ def report(rows) -> None:
         print(f"failed flagged: {sum(not r['ok'] for r in failed) / len(failed):.0%} (issue 11: >= 95 %)")
     if good:
         print(f"good trusted:   {sum(r['ok'] for r in good) / len(good):.0%} (issue 11: >= 90 %)")
+    before = [r for r in rows if r.get("rim_flagged")]
+    if before:
+        print(f"the rim check flagged {len(before)} results the other checks trusted:")
+        print("\n".join(f"  seed {r['seed']}: EPE {r['epe']:.2f} (identity {r['id_epe']:.2f}), rim_share"
+                        f" {r['rim_share']:.2f}, inconsistency {r['inconsistency']:.2f} px" for r in before))  # fmt: skip
+    secs = [r["rim_seconds"] for r in rows if r.get("rim_seconds")]
+    if secs:
+        print(f"backward runs: {len(secs)}, median {np.median(secs):.2f} s, max {max(secs):.2f} s")
     print("\nTRUSTED FAILURES (ok True, failed):")
     print("\n".join(_line(r) for r in failed if r["ok"]) or "  none")
     print("\nFALSE ALARMS (ok False, good):")
@@ -309,7 +325,9 @@ def main(argv=None) -> None:
     ap.add_argument("--seeds", type=int, default=96, help="pairs 0..N-1 (default 96: four of each cell)")
     ap.add_argument("--quick", action="store_true", help="24 pairs, one per motion x texture cell")
     ap.add_argument("--jsonl", help="also write one JSON line per pair here")
+    ap.add_argument("--rim-check", action="store_true", help="register(..., rim_check=True) (session 52)")
     args = ap.parse_args(argv)
+    RIM_CHECK[0] = args.rim_check
     rows = []
     for seed in range(24 if args.quick else args.seeds):
         rows.append(run_one(seed))

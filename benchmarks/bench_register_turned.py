@@ -47,6 +47,9 @@ SMOOTHS = (1.0, 2.0, 3.0)
 SEEDS = {"train": range(0, 30), "test": range(1000, 1030)}
 CHOSEN = 2.0  # chosen on TRAINING (see benchmarks/README.md, "A textureless body turned in the image plane")
 
+_NOT_RUN = {"run": False, "seconds": 0.0}  # register(..., rim_check=False), the default
+RIM_CHECK = [False]  # --rim-check: session 52's opt-in check (register(..., rim_check=True))
+
 
 def _chord(y, x, body):
     """A body's line integral at ``(y, x)``: ``peak sqrt(1 - r^p)`` in its own frame."""
@@ -141,7 +144,7 @@ def run(seed, cache, presets=PRESETS):
         "bound": {str(s): statistic(fixed, moving, s) for s in SMOOTHS},
     }
     for preset in (p for p in presets if p not in out):
-        reg = register(fixed, moving, "rc", preset=preset)
+        reg = register(fixed, moving, "rc", preset=preset, rim_check=RIM_CHECK[0])
         q = reg.quality
         chosen = reg.options["auto"].preset if preset == "auto" else preset
         out[preset] = {
@@ -153,6 +156,12 @@ def run(seed, cache, presets=PRESETS):
                 q.interior_observed < 0.5 and q.body_scale <= 0.3 and chosen.split("+")[0] in ("silent", "silent-fast")
             ),
             "chosen": chosen,
+            # session 52's rim check (--rim-check): its statistic, the backward run's
+            # inconsistency and time, and whether it flagged a result the other checks trusted
+            "rim_share": float(q.rim_share),
+            "inconsistency": float(q.inconsistency),
+            "rim_seconds": float(reg.options.get("rim_check", _NOT_RUN)["seconds"]),
+            "rim_flagged": bool(reg.options.get("rim_check", _NOT_RUN)["run"] and not q.ok),
         }
     cache[key] = out
     return out
@@ -226,7 +235,9 @@ def main(argv=None) -> int:
         help="rc presets to register (auto,silent by default; default or fast: a plain run, which can miss a turn)",
     )
     ap.add_argument("--register", type=int, default=0, help="with --family: register this many seeds with silent")
+    ap.add_argument("--rim-check", action="store_true", help="register(..., rim_check=True) (session 52)")
     args = ap.parse_args(argv)
+    RIM_CHECK[0] = args.rim_check
     if args.family:
         family(args.split, args.register)
         return 0

@@ -203,6 +203,8 @@ class PairQuality(dict):
     body_scale: float | None
     affine_bound: float | None
     disagreement: float | None
+    rim_share: float | None
+    inconsistency: float | None
     noise: float | None
     ok: bool | None
     reason: str | None

@@ -3635,3 +3635,54 @@ def test_the_confidence_maps_carried_out_pixels_are_upsampled_as_the_map():
     assert np.all(full[block] == 0)
     np.testing.assert_array_equal(full[~block], up[~block])
     np.testing.assert_array_equal(_full_confidence(conf, None, (6 * k, 8 * k)), up)
+
+
+def _unmoved_slab(n=192, texture=0.0, noise=0.01, seed=0):
+    """An unmoved pair of a slab seen through its face (a superellipse's chord: straight rims,
+    rounded corners) with ``texture`` (standard deviation, 2 px correlation) and independent noise."""
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    r = np.abs((yy - n / 2) / (0.36 * n)) ** 8 + np.abs((xx - n / 2) / (0.42 * n)) ** 8
+    body = 0.8 * np.sqrt(np.clip(1 - r, 0, None))
+    rng = np.random.default_rng(seed)
+    tex = ndimage.gaussian_filter(rng.standard_normal((n, n)), 2.0)
+    img = ndimage.gaussian_filter(body, 1.0) + (body > 0) * tex * (texture / tex.std())
+    return tuple((img + noise * rng.standard_normal((n, n))).astype(np.float32) for _ in range(2))
+
+
+def test_a_trusted_field_that_slides_along_a_textureless_slabs_rims_is_flagged_by_the_backward_run():
+    """Where the observed interior is mostly one-directional structure (``Quality.rim_share`` over
+    ``_RIM_GATE``), a trusted field is registered backward, and one the backward run does not undo
+    is flagged with the check named: a planted turn of 1.5 degrees on an unmoved slab (the rims
+    slide along themselves; the other checks' verdict planted as trusted). The backward field is
+    the unmoved pair's, within the silent interior's guess (0.4-0.6 px on this slab, measured), so
+    ``d + e o (id + d)`` is the planted field within that."""
+    from radiokit.register import _RIM_GATE, Quality, _PairChecks, _rim_check
+    from radiokit.register._confidence import OBSERVED_PX
+
+    f, m = _unmoved_slab()
+    n = f.shape[0]
+    p = _PairChecks(f, m, None)
+    assert p.rim_share > _RIM_GATE  # the slab's straight rims observe only their normal component
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32) - n / 2
+    a = np.deg2rad(1.5)
+    turn = np.stack([np.sin(a) * xx + (np.cos(a) - 1) * yy, (np.cos(a) - 1) * xx - np.sin(a) * yy]).astype(np.float32)
+    planted = float(np.median(np.hypot(*turn)[p.ob.object]))
+    assert planted > 2 * OBSERVED_PX
+    reg = Registration(turn, "rc", Quality(), {"preset": "fast"})  # trusted by the other checks
+    _rim_check(reg, f, m, None, {"preset": "fast"})
+    check, q = reg.options["rim_check"], reg.quality
+    assert check["run"] and check["options"]["preset"] == "fast"
+    assert q.inconsistency == pytest.approx(planted, abs=0.6)
+    assert not q.ok and "registering the pair backward (rc, preset fast)" in q.reason and "one-directional" in q.reason
+
+
+def test_the_rim_check_does_not_run_on_a_textured_pair():
+    """``register(..., rim_check=True)``: texture makes the interior's windows two-dimensional: the gate stays shut, nothing is
+    registered twice, and the result is judged by the other checks alone."""
+    from radiokit.register import _RIM_GATE
+
+    f, m = _unmoved_slab(texture=0.1)
+    reg = register(f, m, preset="fast", rim_check=True)
+    assert reg.quality.rim_share < _RIM_GATE
+    assert reg.options["rim_check"] == {"run": False, "seconds": 0.0}
+    assert reg.quality.ok and np.isnan(reg.quality.inconsistency)

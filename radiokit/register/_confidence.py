@@ -380,6 +380,37 @@ def _noise_lmin(spacing, highpass, window=None):
     return _NOISE_DERIV[key]
 
 
+def one_directional(f, spacing, highpass=0.25) -> np.ndarray:
+    """Where the map's window holds structure of one direction only (bool): a rim, a plate's or
+    a slab's edge. The window's gradient covariance (the map's: ``f`` high-passed at
+    ``highpass x spacing``, smoothed by 1 px, the noise's share and its 99 % floor taken out) has
+    a smaller eigenvalue under ``1 / WINDOW_REACH^2`` of the larger. An arc of radius ``R`` seen
+    through the map's Gaussian window (sigma ``spacing``) turns its normal by about
+    ``spacing / R`` across it, ``lambda_min / lambda_max ~ (spacing / R)^2``: under the line the
+    structure is no more curved than an arc as wide as the window's cut (``WINDOW_REACH``
+    spacings), and the window's tangential information is that curvature's. It credits a
+    translation of the whole window, but a field free at the window's scale slides such a rim
+    along itself (a rotation about its centre of curvature) unseen (benchmarks/README.md, "Why
+    the error is large where the map says observed on a textureless body"). A texture, a corner
+    or a small inclusion inside the window gives a ratio near 1."""
+    f = np.asarray(f, np.float32)
+    spacing = max(2.0, float(spacing))
+    sig2 = noise_map(f, spacing) ** 2
+    hp = f - _gauss(f, highpass * spacing)
+    gy, gx = np.gradient(_gauss(hp, 1.0))
+    bias = _deriv_noise_var(1.0) * sig2
+    my, mx = _window(gy, spacing), _window(gx, spacing)
+    jyy = _window(gy * gy, spacing) - my * my - bias
+    jxx = _window(gx * gx, spacing) - mx * mx - bias
+    jxy = _window(gy * gx, spacing) - my * mx
+    tr, det = jxx + jyy, jxx * jyy - jxy * jxy
+    root = np.sqrt(np.maximum(0.25 * tr * tr - det, 0))
+    floor = _noise_lmin(spacing, highpass) * sig2
+    lmin = np.maximum(0.5 * tr - root - floor, 0)
+    lmax = np.maximum(0.5 * tr + root - floor, 0)
+    return lmin * WINDOW_REACH**2 < lmax
+
+
 def model_floor(f) -> float:
     """``MODEL_FLOOR`` of the image's range (1st to 99th percentile, from ~250k samples): the
     noise level below which nothing counts as noise (see MODEL_FLOOR)."""
