@@ -3066,3 +3066,17 @@ def test_a_one_page_tifffile_description_past_json_s_reach_is_not_read_and_the_p
         np.testing.assert_array_equal(read(path).data, frame[None])
     res = run_cli("info", path)
     assert res.returncode == 0 and "Traceback" not in res.stderr and "1 x 4 rows x 5 cols" in res.stdout, res
+
+
+@pytest.mark.parametrize("header", [False, True], ids=["dotted key", "table header"])
+def test_toml_nested_by_a_long_dotted_key_is_refused_before_tomllib_builds_it(header, tmp_path):
+    """Review s52rvoff: a dotted key nests a table a part without a bracket, and tomllib's cost
+    is quadratic in its parts (a tuple per prefix): 10 000 parts took 400 MB, and a 200 KB scene
+    of one key of 100 000 parts was killed by the kernel (40 GB) before the depth rule
+    (radiokit.checks.toml_loads) saw what it built. Refused in one line, inside 1 GiB."""
+    toml = tmp_path / "dotted.toml"
+    key = ".".join(["a"] * 100_000)
+    toml.write_text('name = "block"\n' + (f"[{key}]\nx = 1\n" if header else f"{key} = 1\n"))
+    res = run_on_a_big_machine("sim", "run", toml, "-o", tmp_path / "sim")
+    one_line_error(res, str(toml), "nests deeper than 32")
+    assert not (tmp_path / "sim").exists()
