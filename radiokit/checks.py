@@ -10,6 +10,7 @@ two tests refuse it and take numpy's integers and floats (readers of HDF5 get ``
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 import os
@@ -151,12 +152,16 @@ def toml_loads(text: str) -> dict:
 
     Why: :mod:`tomllib` parses by recursion, about three calls a level of arrays or inline
     tables, so a file nested a few hundred deep raised RecursionError, which no reader's ``except
-    TOMLDecodeError`` caught: ``sim run``, ``acquire`` and ``process`` ended in a traceback (s52)."""
+    TOMLDecodeError`` caught: ``sim run``, ``acquire`` and ``process`` ended in a traceback (s52).
+    A dotted key nests a level a part with no bracket, and tomllib's cost is quadratic in its
+    parts (a tuple per prefix): refused unparsed past the depth (:func:`_long_dotted_key`)."""
     import tomllib
 
     from radiokit._json import MAX_DEPTH, too_deep  # late: numpy, which this module does without
 
     deep = tomllib.TOMLDecodeError(f"nests deeper than {MAX_DEPTH} levels, past any TOML radiokit reads")
+    if _long_dotted_key(MAX_DEPTH).search(text):
+        raise deep
     try:
         value = tomllib.loads(text)
     except RecursionError:
@@ -164,3 +169,18 @@ def toml_loads(text: str) -> dict:
     if too_deep(value):
         raise deep
     return value
+
+
+@functools.cache
+def _long_dotted_key(depth: int):
+    """A pattern finding a TOML key of more than ``depth`` dotted parts (bare, "basic" or
+    'literal') where a key may start: a line's start, a table header's bracket, an inline
+    table's brace or comma. Such a key nests more than ``depth`` levels, which
+    :func:`toml_loads` refuses anyway. Why before parsing: tomllib keeps a tuple per prefix of a
+    key, 10 000 parts took 400 MB, and one of 100 000 (a 200 KB file) was killed by the kernel
+    at 40 GB (review s52rvoff). Text in a value or a comment matches only as 33 dotted words
+    after a comma or a bracket, which no scene or protocol holds."""
+    import re
+
+    part = r"""(?:[A-Za-z0-9_-]+|"(?:[^"\\\n]|\\.)*"|'[^'\n]*')"""
+    return re.compile(rf"(?:^|[\[{{,])[ \t]*{part}(?:[ \t]*\.[ \t]*{part}){{{depth}}}", re.MULTILINE)

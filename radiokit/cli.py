@@ -1431,7 +1431,7 @@ def cmd_process(args) -> int:
                     raise
                 raise ValueError(text) from exc
             raise ValueError(f"{shown(args.files[0])}: {text}") from exc
-        _print_headline(res.record, res.files)
+        _print_headline(res.record, res.files, name=args.files[0], control=args.control)
         return 0 if _all_ok(res.record) else 1
     return _process_many(args, cfg)
 
@@ -1461,7 +1461,7 @@ def _process_many(args, cfg) -> int:
     except ValueError as exc:  # a refusal before any work (the workers' memory): in the options' words
         raise ValueError(_process_error(str(exc), args, _reader_advice(exc))) from None
     failed = 0
-    for r in results:
+    for given, r in zip(args.files, results):  # (process_many's results: in the files' order)
         if "error" in r:
             failed += 1
             print(f"{shown(r['source'])}: error: {_batch_error(r, args)}", file=sys.stderr)
@@ -1472,7 +1472,7 @@ def _process_many(args, cfg) -> int:
                 files = {"report": str(report)} if report.exists() else {}
                 files["results_json"] = str(Path(r["output"]) / "results.json")
             record = Results.from_json(r, r["source"])
-            _print_headline(record, files)
+            _print_headline(record, files, name=given, control=args.control)
             failed += not _all_ok(record)  # as one file's run: a flagged pair is exit 1
     return 1 if failed else 0
 
@@ -1492,10 +1492,15 @@ def _all_ok(record) -> bool:
     return all(p.ok for p in record.pairs) and (record.control is None or _all_ok(record.control))
 
 
-def _print_headline(record, files, prefix=""):
+def _print_headline(record, files, prefix="", *, name=None, control=None):
     """The lines ``radiokit process`` prints for one file (:class:`radiokit.results.Results`), and
     for its control after them (``prefix`` "control "); the domains by radiokit's names
-    (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0)."""
+    (``negative`` is -I/I0, the paper's "linear" images; DESIGN.md keeps "linear" for I/I0).
+
+    ``name``, ``control``: the file and its control as the command was given them, named so.
+    Why not ``record.source``: it is the name as UTF-8 text, a byte that is not UTF-8 written
+    ``\\xNN`` with a real backslash, which names print quoted and doubled, ``'exp\\\\xe9.h5'``:
+    another file, one named with a backslash (review s52rvoff)."""
     from radiokit.results import k_label, sig3, value_pm
 
     dom = record.domain
@@ -1507,7 +1512,7 @@ def _print_headline(record, files, prefix=""):
     reason = (main.change_ratio_reason or {}).get(dom)
     cr = reason if reason else value_pm(main.change_ratio[dom], (main.change_ratio_se or {}).get(dom), 3)
     print(
-        f"{prefix}{shown(record.source)}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
+        f"{prefix}{shown(record.source if name is None else name)}: improvement factor ({dom.value}) {ifs}; change ratio {main.name} "
         f"{cr}; registration {'ok' if main.ok else 'NOT ok: ' + main.reason}"
     )
     for dom, m in record.domains.items():  # every k and domain: IF (bound), CNR
@@ -1524,7 +1529,7 @@ def _print_headline(record, files, prefix=""):
         if not pair.ok and pair.name != main.name:
             print(f"  WARNING: pair {pair.name} NOT ok: {pair.reason}")
     if record.control is not None:  # it was in results.json and the report only
-        _print_headline(record.control, {}, prefix="control ")
+        _print_headline(record.control, {}, prefix="control ", name=control)
     for name in ("report", "results_json"):
         if name in files:
             print(f"  {name.replace('_', '.')}: {shown(files[name])}")

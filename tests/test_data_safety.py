@@ -1478,6 +1478,20 @@ def test_inputs_named_in_bytes_that_are_not_utf8_are_recorded_readably(images, t
     assert "exp\\xe9 1.h5" in (tmp_path / "res" / "report.html").read_text(encoding="utf-8")
 
 
+def test_process_s_headline_names_a_file_not_utf8_as_every_other_line_does(tmp_path):
+    """Review s52rvoff: the headline printed ``Results.source``, the name with its odd bytes
+    written as text ``\\xNN`` (for UTF-8 files); since s52 quotes a name holding a backslash, it
+    printed ``'exp\\\\xe9.h5'``, which reads back (ast.literal_eval) as another file, one
+    named with a backslash, where the command's other lines print the byte as ``\\xe9``
+    unquoted. Named as the command was given it, as the lines after it name its outputs."""
+    exp = synthetic(_non_utf8(tmp_path, b"exp\xe9.h5"))
+    res = run_cli("process", exp, "-o", tmp_path / "res", "--no-report", *NO_CROSS_CHECK, *ROI)
+    assert res.returncode in (0, 1), res.stderr  # 1: a pair flagged
+    first = res.stdout.splitlines()[0]
+    assert first.startswith(f"{tmp_path}/exp\\xe9.h5: improvement factor"), first
+    assert f"  results.json: {tmp_path}/res/results.json" in res.stdout, res.stdout
+
+
 @pytest.mark.parametrize("cmd", ["calibrate", "register"])
 @pytest.mark.parametrize("name", ["out.tif", "out.png", "out"])
 def test_an_hdf5_output_is_not_written_under_another_formats_name(cmd, name, experiment, images, tmp_path):

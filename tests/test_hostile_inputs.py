@@ -3032,3 +3032,51 @@ def test_a_simulated_scene_s_attenuation_past_float_s_range_is_refused_in_one_li
         "attenuation_per_cm",
         "expected a positive number",
     )
+
+
+@pytest.mark.parametrize("depth", [40, 100_000])
+def test_a_resumed_file_s_stored_protocol_nested_past_radiokit_s_depth_is_one_line(depth, tmp_path):
+    """Review s52rvoff: ``acquire --resume`` reads the protocol the file stores (/entry@protocol)
+    as TOML, with tomllib itself, which the s52 rule (radiokit.checks.toml_loads) missed: one
+    nested 100 000 deep ended in a RecursionError traceback. Refused as any stored protocol that
+    is not TOML is: one line naming the file, before any byte is sent."""
+    from sim.scene import block_scene
+    from tests.test_safety import write_protocol
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(block_scene(size_mm=10.0, ratios=(0.15, 0.25)).to_toml())
+    proto = write_protocol(tmp_path, scene, "/dev/null")
+    series = tmp_path / "series.h5"  # the protocol's output
+    with ExperimentWriter(series, shape=(4, 4)) as w:
+        w.h5["entry"].attrs["protocol"] = DEEP_TOML[depth]
+    res = run_cli("acquire", proto, "--dry-run", "--sim", "--resume", cwd=tmp_path)
+    one_line_error(res, "stored protocol", "nests deeper than 32")
+
+
+def test_a_one_page_tifffile_description_past_json_s_reach_is_not_read_and_the_page_is(tmp_path):
+    """Review s52rvoff: one page of a tifffile description nested past what json reads: radiokit
+    asked tifffile's own shaped_metadata whether the file was a truncated stack, whose json.loads
+    recursed: "cannot be read as tiff: maximum recursion depth exceeded ..." (s52 fixed it for
+    a file of many pages only). Read as the page it is."""
+    path = tmp_path / "shaped.tif"
+    frame = np.arange(4 * 5, dtype=np.uint16).reshape(4, 5)
+    description = '{"shape": [4, 5], "truncated": true, "x": ' + "[" * 100_000 + "]" * 100_000 + "}"
+    tifffile.imwrite(path, frame, description=description, metadata=None, photometric="minisblack")
+    with pytest.warns(UserWarning, match="nests deeper than 32 levels"):
+        np.testing.assert_array_equal(read(path).data, frame[None])
+    res = run_cli("info", path)
+    assert res.returncode == 0 and "Traceback" not in res.stderr and "1 x 4 rows x 5 cols" in res.stdout, res
+
+
+@pytest.mark.parametrize("header", [False, True], ids=["dotted key", "table header"])
+def test_toml_nested_by_a_long_dotted_key_is_refused_before_tomllib_builds_it(header, tmp_path):
+    """Review s52rvoff: a dotted key nests a table a part without a bracket, and tomllib's cost
+    is quadratic in its parts (a tuple per prefix): 10 000 parts took 400 MB, and a 200 KB scene
+    of one key of 100 000 parts was killed by the kernel (40 GB) before the depth rule
+    (radiokit.checks.toml_loads) saw what it built. Refused in one line, inside 1 GiB."""
+    toml = tmp_path / "dotted.toml"
+    key = ".".join(["a"] * 100_000)
+    toml.write_text('name = "block"\n' + (f"[{key}]\nx = 1\n" if header else f"{key} = 1\n"))
+    res = run_on_a_big_machine("sim", "run", toml, "-o", tmp_path / "sim")
+    one_line_error(res, str(toml), "nests deeper than 32")
+    assert not (tmp_path / "sim").exists()

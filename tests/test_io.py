@@ -3040,3 +3040,27 @@ def test_values_past_a_presets_12_bits_are_said_to_fit_the_smallest_adc_that_hol
     text = str(caught[0].message)
     assert f"up to {peak} exceed the 12-bit range" in text, text
     assert f"they fit a {bits}-bit ADC (0..{(1 << bits) - 1})" in text, text
+
+
+def test_restore_previous_names_the_series_set_aside_as_names_print(tmp_path):
+    """Review s52rvoff: s52 named the folder ExperimentWriter keeps a previous series in as names
+    print (radiokit._names.shown) in one of its messages; restore_previous's, which name the
+    same set-aside file, printed it raw: a newline in the user's name split the line there (the
+    command line's net then quoted the user's name inside it, `.'e\\nx'.previous-...`)."""
+    import socket
+
+    from radiokit._names import shown
+    from radiokit.io import restore_previous
+
+    host = socket.gethostname().split(".")[0]
+    path = tmp_path / "e\nx.h5"
+    digest = hashlib.sha256(b"e\nx.h5").hexdigest()[:8]
+    aside = tmp_path / f".e\nx.previous-{host}-{_dead_pid()}-{digest}.h5"
+    _write_experiment(aside, shape=EXP_SHAPE)
+    said = restore_previous(path, dry_run=True)  # the name free: it would be put back
+    assert len(said) == 1 and said[0][0] is True and shown(aside.name) in said[0][1], said
+    assert "\n" not in said[0][1], said
+    _write_experiment(path, shape=EXP_SHAPE)  # the name holds frames: the set-aside one is kept
+    said = restore_previous(path)
+    assert len(said) == 1 and said[0][0] is False and shown(aside) in said[0][1], said
+    assert "\n" not in said[0][1], said

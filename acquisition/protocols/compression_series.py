@@ -1054,9 +1054,11 @@ def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
     a time-out) recorded under the previous release's kept the file from ever being resumed
     (``min_interval_s = 1.5``, capped at 1 s since; review s41rr)."""
     try:
-        stored = tomllib.loads(text)
+        # the rule every TOML radiokit reads keeps (checks.toml_loads): one nested 100 000 deep
+        # was a RecursionError traceback (review s52rvoff)
+        stored = toml_loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ProtocolError(f"{path} (its stored protocol): not valid TOML: {exc}") from None
+        raise ProtocolError(f"{shown(path)} (its stored protocol): not valid TOML: {exc}") from None
     merged = tomllib.loads(now.to_toml())
     for section, key in _RESUME_SAME + _RESUME_SAME_SIM:
         old = stored.get(section) if isinstance(stored.get(section), dict) else {}

@@ -366,7 +366,7 @@ class ExperimentWriter:
             # the old file stays hidden, unlocked so that the next run of this name puts it back
             self.previous_kept_in = aside
             warnings.warn(
-                f"{shown(self.path)}: the previous series could not be put back ({exc.strerror or exc}); it stays in {aside}",
+                f"{shown(self.path)}: the previous series could not be put back ({exc.strerror or exc}); it stays in {shown(aside)}",
                 stacklevel=3,
             )
             return
@@ -389,7 +389,7 @@ class ExperimentWriter:
             _fsync(aside.parent)
         except OSError as exc:  # the run goes on; the file is named now, and by every later run
             warnings.warn(
-                f"{shown(self.path)}: the previous series, kept in {aside} until this run's first frame, could not "
+                f"{shown(self.path)}: the previous series, kept in {shown(aside)} until this run's first frame, could not "
                 f"be removed ({exc.strerror or exc}); rename it to keep it, or remove it",
                 stacklevel=3,
             )
@@ -1076,7 +1076,7 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     True,
-                    f"{shown(path)}: a run would first restore the previous series from {old.name} (an --overwrite "
+                    f"{shown(path)}: a run would first restore the previous series from {shown(old.name)} (an --overwrite "
                     "stopped before its first frame had set it aside); this dry run moved nothing and plans "
                     "for the name as it stands",
                 )
@@ -1085,7 +1085,7 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     True,
-                    f"{shown(path)}: restored the previous series from {old.name} (an --overwrite stopped before its "
+                    f"{shown(path)}: restored the previous series from {shown(old.name)} (an --overwrite stopped before its "
                     "first frame had set it aside)",
                 )
             )
@@ -1093,9 +1093,9 @@ def restore_previous(path, *, dry_run=False, found: list | None = None) -> list[
             said.append(
                 (
                     False,
-                    f"{shown(path)}: a previous series is still kept in {old} (set aside by an --overwrite; the name now "
+                    f"{shown(path)}: a previous series is still kept in {shown(old)} (set aside by an --overwrite; the name now "
                     f"holds another file -- the new series' frames, a run writing, or a file of another program -- "
-                    f"or it was set aside on another host); rename it to keep it (not over {target.name}), or "
+                    f"or it was set aside on another host); rename it to keep it (not over {shown(target.name)}), or "
                     "remove it",
                 )
             )

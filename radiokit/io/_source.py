@@ -1160,10 +1160,11 @@ class FrameSource:
         tif, images, what = self._tif, 1, ""
         if tif.is_imagej:
             images, what = (tif.imagej_metadata or {}).get("images", 1), "ImageJ description says images="
-        elif len(pages) == 1 and tif.is_shaped and (tif.shaped_metadata or [{}])[0].get("truncated"):
+        elif len(pages) == 1 and tif.is_shaped and (shaped := _shaped_meta(first)).get("truncated"):
             # (only for one page: tifffile's series of a file of many, each written on its own,
             # compares every page with every other; 20 000 one-pixel pages took 76 s)
-            shape = tif.shaped_metadata[0].get("shape", [])
+            shape = shaped.get("shape", [])
+            shape = shape if isinstance(shape, list) else []
             if list(shape[-2:]) == list(first.shape) and all(isinstance(v, int) for v in shape):
                 images, what = math.prod(shape[:-2]), "tifffile description says shape[:-2] holds "
         if tif.is_imagej:
@@ -2182,6 +2183,18 @@ def _old_style_signal(data: h5py.Group) -> str | None:
         except (TypeError, ValueError):
             continue
     return marked[0] if len(marked) == 1 else None
+
+
+def _shaped_meta(page) -> dict:
+    """The JSON description tifffile puts on ``page`` (its shape, "truncated"), read by radiokit's
+    rule (radiokit._json); ``{}`` where it has none that reads. Why not tifffile's
+    ``shaped_metadata``: its own json.loads of one nested past Python's reach raised
+    RecursionError, and a one-page file was "cannot be read as tiff" (review s52rvoff)."""
+    try:
+        meta = strict_json.loads_record(page.shaped_description or "")
+    except (ValueError, TypeError, OverflowError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
 
 
 def _shaped_series(pages) -> list[tuple[tuple, str]]:
