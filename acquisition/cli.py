@@ -329,8 +329,8 @@ def _guarded(command, *args) -> int:
     :meth:`~acquisition.guardian.SignalGuard.settle`); one still on its way as the command ends
     is raised only as the guard is left, after the command decided its exit code and said its
     last line. That line stays the last (the tube's state), and the exit code says the command
-    was stopped -- unless it is 3, the tube not confirmed off, which nothing replaces, or 0, the
-    command done before the stop came."""
+    was stopped -- 128 + N, 0 included (the stop came while the command ran) -- unless it is 3,
+    the tube not confirmed off, which nothing replaces."""
     from acquisition.guardian import SignalGuard, StopSignal
 
     code = None
@@ -349,9 +349,12 @@ def _guarded(command, *args) -> int:
     except StopSignal as exc:
         if code is None:  # the command's own, not the guard's as it was left
             raise
-        # 0: the command had finished, tube off confirmed, when the stop came (128 + N says
-        # "stopped, tube off or never reached"; review s32-r3)
-        return code if code in (0, 3) else 128 + exc.signum
+        # 3 (the tube not confirmed off) is never replaced. Nor was 0 ("the command had finished
+        # when the stop came", review s32-r3), but after finish() the stop signals are ignored: a
+        # stop raised here came while the command ran (lost in a finalizer, delivered again), and
+        # 0 let `probe && source on` switch X-rays on after that Ctrl-C: 128 + N, as one only
+        # acknowledged (review s52rvacq)
+        return code if code == 3 else 128 + exc.signum
     return code
 
 

@@ -512,6 +512,9 @@ class SerialTransport:
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
+        # The words of the commands written since the port's output last drained (a drain a stop
+        # cut short, a write that timed out): close() keeps unsent bytes that hold the switch-off
+        self._undrained: list[str] = []
         # The last exchange timed out (NoReply): the controller may still be answering it, and a
         # unit busy answering may lose the next command (L8121.md is silent); the next exchange
         # first waits, briefly, for that reply and a quiet line (_await_late_reply)
@@ -709,9 +712,25 @@ class SerialTransport:
             time.sleep(_CLOSE_POLL_S)
 
     def _discard_output(self, ser) -> None:
-        """Drop the bytes still unsent, so that closing the port does not wait for them, and say so."""
+        """Drop the bytes still unsent, so that closing the port does not wait for them, and say so
+        -- unless they hold the switch-off (the on_reconnect's ``blind`` command, XOF): it was not
+        confirmed (its reply cannot come before it left), and the port's close, which waits for it
+        (up to 30 s on Linux), sends it if the adapter moves again; discarded, a tube the operator
+        was just warned of stayed on (review s52rvacq). Other bytes go: a delayed XON must not
+        reach the controller once its command has ended."""
         left = _unsent(ser)
-        if left:
+        undrained, self._undrained = self._undrained, []  # a port opened again starts with none
+        off = sorted(set(undrained) & set(getattr(self.on_reconnect, "blind", ())))
+        if left and off:
+            self.log.warning(
+                "%s: %d bytes still unsent after %.1f s (the port's output is not draining) hold %s, not "
+                "confirmed: left for the port to send as it closes (Linux waits up to 30 s for them)",
+                self.url,
+                left,
+                self.write_timeout_s,
+                " ".join(off),
+            )
+        elif left:
             with contextlib.suppress(serial.SerialException, OSError, ValueError, AttributeError):
                 ser.reset_output_buffer()
             self.log.warning(
@@ -825,8 +844,10 @@ class SerialTransport:
         but whose replies are lost was switched off so before the check existed, and silence is not
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
+            self._undrained.append(command.split(" ", 1)[0])
             self._write(self._serial, command, self._payload(command))
             self._serial.flush()
+            self._undrained.clear()
         except _LINK_ERRORS as exc:
             self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
             return
@@ -857,11 +878,13 @@ class SerialTransport:
         written = False
         try:
             self.commands_written += 1
+            self._undrained.append(command.split(" ", 1)[0])
             self._write(ser, command, payload)
             # its bytes are out: owed its reply from here, even if the drain below fails (the
             # controller may have the command; its reply then comes on the reopened port)
             written = True
             ser.flush()
+            self._undrained.clear()  # the drain waits for the whole output: every byte has left
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
             if isinstance(exc, NoReply) or (written and isinstance(exc, _LINK_ERRORS)):

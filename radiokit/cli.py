@@ -2184,4 +2184,6 @@ def _error_line(command: str, exc: BaseException, names=()) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m radiokit.cli` ends as the command returns, as the console script does: script(),
+    # not main(), whose handlers given back let a Ctrl-C after a finished acquire end it by SIGINT
+    sys.exit(script())

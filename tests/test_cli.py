@@ -1719,3 +1719,36 @@ def test_main_without_argv_gives_a_calling_program_its_stop_signals_back(tmp_pat
         for sig, handler in before.items():
             signal.signal(sig, handler)
     assert after == dict.fromkeys(_TAKEN, mine), after
+
+
+_RUN_AS_MODULE = """
+import atexit, runpy, signal, sys
+
+def said():  # as the interpreter exits, after the command's last line
+    ignored = [signal.getsignal(sig) == signal.SIG_IGN for sig in (signal.SIGINT, signal.SIGTERM)]
+    print("ignored at exit:", ignored, file=sys.stderr)
+
+atexit.register(said)
+sys.argv = ["radiokit", *sys.argv[1:]]
+runpy.run_module("radiokit.cli", run_name="__main__", alter_sys=True)  # what `python -m radiokit.cli` runs
+"""
+
+
+def test_python_m_radiokit_cli_keeps_a_finished_acquires_signals_ignored_to_the_exit():
+    """Review s52rvacq: `python -m radiokit.cli` (the form the safety tests and benchmarks run) is a
+    process that ends as the command returns, as the console script is, but its ``__main__`` block
+    called ``main()``, which since session 52 gives the caller's handlers back: a Ctrl-C between a
+    finished acquire's last line and the exit ended it by SIGINT again (review s49), the console
+    script (``script()``) not. It runs ``script()`` too. Real emulator on a pseudo-terminal; the
+    module run as ``-m`` runs it (runpy), with a hook that reads the handlers as the interpreter exits."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        res = subprocess.run(
+            [sys.executable, "-c", _RUN_AS_MODULE, "acquire", "source", "off", "--port", server.url, "--dialect", "A"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert res.returncode == 0, (res.returncode, res.stderr)
+    assert res.stderr.strip().splitlines()[-1] == "ignored at exit: [True, True]", res.stderr

@@ -5465,3 +5465,42 @@ def test_a_stop_as_source_off_builds_its_driver_still_switches_off(dialect, monk
     assert not model.xray_on and "XOF" in model.commands, err
     assert "WARNING" not in out + err and "please wait" in err, (out, err)
     assert re.search(r"X-rays off \(confirmed", out.strip().splitlines()[-1]), (out, err)
+
+
+class _DrainCutShort(_WedgedOutput):
+    """:class:`_WedgedOutput` whose drain (``flush()``, tcdrain) a stop cuts short: the command's
+    bytes are written (to the real pty) but reported unsent, as on a wedged adapter."""
+
+    def flush(self) -> None:
+        raise KeyboardInterrupt("SIGTERM")  # a stop arriving while the drain waits
+
+
+@pytest.mark.parametrize("command", ["XOF", "STS"])
+def test_closing_a_port_keeps_an_undrained_switch_off_for_the_port_to_send(command, caplog):
+    """Review s52rvacq: close() discarded whatever output was still unsent after write_timeout_s,
+    its premise "the tube's state is settled, nothing they held is owed". It is not when those bytes
+    hold the switch-off (XOF, the command a link sends even blind): it was not confirmed (its reply
+    cannot come before it left), and Linux's close, waiting up to 30 s, sent it once the adapter
+    moved again -- discarded, a tube the operator was just warned of stayed on. The switch-off is
+    kept for the port to send as it closes (said in the log); any other command's bytes are still
+    discarded (a delayed XON must not reach the controller after the process ended)."""
+    from acquisition.l8121 import DIALECTS, Reidentify
+
+    write_timeout_s, wait_s = 0.1, 0.3
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        link.on_reconnect = Reidentify(DIALECTS["A"], None, server.url)  # as the driver's link has it
+        assert link.query("STS") == "STS 2"
+        real = link._serial
+        link._serial = wedged = _DrainCutShort(real, unsent=4, wait_s=wait_s)
+        with pytest.raises(KeyboardInterrupt):
+            link.query(command)
+        with caplog.at_level(logging.WARNING, logger="acquisition.transport"):
+            link.close()
+    assert not real.is_open and not link.is_open
+    said = [r.getMessage() for r in caplog.records if "unsent" in r.getMessage()]
+    assert len(said) == 1 and server.url in said[0], caplog.text
+    if command == "XOF":
+        assert wedged.unsent == 4 and "XOF" in said[0], said  # left for the port's close to send
+    else:
+        assert wedged.unsent == 0 and "discarded" in said[0], said

@@ -2034,3 +2034,35 @@ def test_a_stop_during_a_complete_series_closing_switch_off_exits_128_plus_n(con
         acq.output
     )
     assert code == 130 and CONFIRMED.search(acq.last_line), (code, acq.output)
+
+
+@pytest.mark.parametrize("controller", ["A", "B"], indirect=True)
+def test_a_probe_stopped_by_a_stop_lost_in_a_finalizer_does_not_exit_0(controller, monkeypatch, sigint_default):
+    """Review s52rvacq: a Ctrl-C Python dropped in a finalizer during ``source probe`` (delivered
+    again 50 ms later) and still on its way as the probe ended was raised only as its guard was left,
+    where ``_guarded`` kept the exit code 0 ("the command had finished when the stop came"): it had
+    not -- after ``finish()`` the stop signals are ignored, so every stop raised there came while the
+    command ran. 0 lets `probe && source on` switch X-rays ON after the operator's Ctrl-C; a stop only
+    acknowledged exits 128 + N (review s51rv3), and so does this one, the tube's line still the last.
+    Fault injection (a signal cannot be aimed at a finalizer from outside): the probe's end drops an
+    object whose finalizer takes a real SIGINT; the controller is the emulator on a real pty."""
+    from conftest import run_cli
+
+    from acquisition import cli
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(signal.SIGINT)  # the guard's handler raises here; Python drops it
+
+    found = cli._probe_found
+
+    def then_a_stop_is_lost(*args, **kwargs):
+        code = found(*args, **kwargs)
+        Finalised()  # dies at once: the stop lost, its delivery 50 ms away as the command returns
+        return code
+
+    monkeypatch.setattr(cli, "_probe_found", then_a_stop_is_lost)
+    model, server = controller()
+    res = run_cli("acquire", "source", "probe", "--port", server.url, "--baudrate", "9600")
+    assert not model.xray_on
+    assert res.returncode == 128 + signal.SIGINT, (res.returncode, res.stdout, res.stderr)
