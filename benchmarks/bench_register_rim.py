@@ -8,7 +8,7 @@ Run (from the repository root), after the benches that cache the fields and the 
     python benchmarks/bench_register_flag.py --split train --size 560 --seeds 2 --textureless --skip elastix
     python benchmarks/bench_register_inverse.py --source family --split train --size 560 --seeds 2
     python benchmarks/bench_register_rim.py --source family --split train --size 560 --seeds 2
-    python benchmarks/bench_register_turned.py --split train --out out/turned   # register() runs the check
+    python benchmarks/bench_register_turned.py --split train --out out/turned --rim-check   # register(..., rim_check=True)
     python benchmarks/bench_register_rim.py --source turned --split train
 
 The hypothesis (session 52): on a textureless body the trusted failures slide *along* a smooth
@@ -23,8 +23,9 @@ observed object when there is no interior) that is one-directional, from the fix
 the gate opens over ``GATE`` (a half: "mostly"; ``--gate`` to measure others). The test: session
 48's forward-backward inconsistency (``bench_register_inverse.py``'s cached rows, the backward run
 at full resolution with the result's own method and preset) over ``OBSERVED_PX`` (0.5 px).
-``--source turned`` reads ``bench_register_turned.py``'s results, registered by ``register()``,
-which runs the check itself.
+``--source turned`` reads ``bench_register_turned.py --rim-check``'s results, registered by
+``register(..., rim_check=True)``, which runs the check itself (an option since session 52, not the
+default).
 
 Printed: the statistic's spread on the trusted failed and good results, the gate's open rate,
 and the confusion before / after (failed flagged, good trusted) per method and over all; the
