@@ -1839,12 +1839,17 @@ def _stop(r: _Run, exc: BaseException):
     beam_period = r.beam_since is not None
     unvouched = False
     if beam_period and monitor is not None:
-        if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
+        # A poll the stop itself cut short (SwitchedOff) saw no fault. The signal's watcher thread
+        # cancels routine readings at once (on_signal), so the monitor's poll in flight may record
+        # its SwitchedOff before this thread, still raising the stop, gets here: taken for a fault,
+        # it left the stop's SER unread (make test on a loaded machine, session 52)
+        no_fault = _only_cut_short(monitor.error)
+        if no_fault and not _source_error(exc) or isinstance(exc, DetectorTimeout):
             # stopped for another reason (a signal, the disk, the detector): X-rays off first. A poll
             # to vouch for the frames since the last one would keep the beam on for its exchanges
             # (A: SAR, SIN; B: STS, SHV, SCU, SIN); those frames are labelled invalid instead
             unvouched = True
-        elif monitor.error is None:
+        elif no_fault:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
@@ -1909,6 +1914,12 @@ def _only_cut_short(error) -> bool:
     from acquisition.l8121 import SwitchedOff
 
     return error is None or isinstance(error, SwitchedOff)
+
+
+def _source_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is the source's own error, not this thread's reading cut short by the
+    stop's switch-off (:class:`~acquisition.l8121.SwitchedOff`, which vouches for nothing)."""
+    return isinstance(exc, DeviceError) and not _only_cut_short(exc)
 
 
 def _error_code_after_stop(monitor) -> None:
