@@ -657,6 +657,172 @@ def test_a_stop_in_a_beam_period_reads_the_error_code_once_the_tube_is_off(tmp_p
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_whose_signal_cuts_the_monitors_poll_short_first_still_reads_the_error_code(
+    tmp_path, scene_toml, bench, dialect
+):
+    """The test above, the interleaving a loaded machine gave it (make test, session 52): the
+    signal's watcher thread cancels routine readings at once (``on_signal``), so the beam monitor's
+    poll in flight -- its beam reading answered, ``SIN`` not yet asked -- records its
+    :class:`~acquisition.l8121.SwitchedOff` before the main thread, still raising the stop, has
+    reached the run's stop path. That poll saw no fault (it vouches for nothing), yet the stop path
+    took the recorded error for one and read no ``SER`` after the ``XOF``. Here trace functions
+    hold the monitor thread before its ``SIN`` and the main thread at the stop path until the
+    watcher has cancelled and the poll has ended, so the order is the same every time."""
+    from acquisition.guardian import StopSignal
+    from acquisition.l8121 import ERROR_POLL_MAX_S, SwitchedOff
+
+    # _one_step_read_no_ser's, on a fast link (the interleaving is held, not timed)
+    p = protocol(tmp_path, scene_toml, dialect, link_s=0.002, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
+    dev = sim_devices(p, bench=bench)
+    model, src = dev.emulator, dev.source
+    armed, parked, go = threading.Event(), threading.Event(), threading.Event()
+    held = {}
+
+    def in_new_threads(frame, event, arg):  # the beam monitor's thread: held before its poll's SIN
+        if (
+            armed.is_set()
+            and not parked.is_set()
+            and frame.f_code.co_name == "_take_turn"
+            and frame.f_locals.get("line") == "SIN"
+            and threading.current_thread().name == "beam-monitor"
+        ):
+            parked.set()
+            go.wait(5.0)
+        return None
+
+    def in_main(frame, event, arg):  # the stop path entered: the watcher's cancel, then the poll's end
+        if frame.f_code.co_name == "_stop" and "r" in frame.f_locals:
+            sys.settrace(None)
+            monitor, deadline = frame.f_locals["r"].monitor, time.monotonic() + 5.0
+            while src._routine_epoch == held["epoch"] and time.monotonic() < deadline:
+                time.sleep(0.001)
+            held["cancelled"] = src._routine_epoch != held["epoch"]
+            go.set()
+            monitor._thread.join(5.0)
+            held["error"] = monitor.error
+        return None
+
+    def stop():
+        armed.set()
+        assert parked.wait(5.0)  # the monitor's poll between its exchanges
+        held["epoch"] = src._routine_epoch
+        sys.settrace(in_main)
+        signal.raise_signal(signal.SIGINT)
+
+    hook, seen = _at_frames(model, {4: lambda: model.controller_error(2), 5: stop})
+    threading.settrace(in_new_threads)
+    try:
+        with pytest.raises(StopSignal) as info:
+            run(p, devices=dev, progress=False, on_phase=hook)
+    finally:
+        threading.settrace(None)
+        sys.settrace(None)
+        go.set()
+    assert held["cancelled"] and isinstance(held["error"], SwitchedOff), held  # the interleaving, as meant
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[seen["n"] :]]
+    first = after.index("XOF")
+    assert "SIN" not in after[first - 1 : first], after  # the poll cut short before its SIN
+    assert "SER" in after[first:], after  # read once the tube is off, never before the XOF
+    c = contents(p.output)
+    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_landing_in_the_periods_last_poll_still_reads_the_error_code(tmp_path, scene_toml, bench, dialect):
+    """A stop can land in the main thread's own poll too: the one that vouches for a beam period's
+    frames just before its ``XOF`` (``_beam_off``: the beam checks, ``SER`` after the ``XOF``). The
+    poll recorded the stop as the beam monitor's error, the stop path took it for a beam fault,
+    and no ``SER`` was read after the stop's ``XOF``. A stop is no reading of the beam: the frames
+    since the last good poll are labelled invalid and ``SER`` read once the tube is off, as for a
+    stop anywhere else in the period. A trace function raises the signal (a real ``SIGINT``) as the
+    poll's ``SIN`` is about to be asked, between its exchanges."""
+    from acquisition.guardian import StopSignal
+    from acquisition.l8121 import ERROR_POLL_MAX_S
+
+    p = protocol(tmp_path, scene_toml, dialect, link_s=0.002, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    landed = []
+
+    def in_main(frame, event, arg):
+        up = frame.f_back
+        if (
+            frame.f_code.co_name == "interlock_closed"
+            and up is not None
+            and up.f_code.co_name == "check"
+            and up.f_back is not None
+            and up.f_back.f_code.co_name == "confirm"
+        ):
+            sys.settrace(None)
+            landed.append([e.command for e in model.log][-1])
+            signal.raise_signal(signal.SIGINT)
+        return None
+
+    # the step's second frame: the code; its last: the trace set for the period's last poll
+    hook, seen = _at_frames(model, {4: lambda: model.controller_error(2), 5: lambda: sys.settrace(in_main)})
+    try:
+        with pytest.raises(StopSignal) as info:
+            run(p, devices=dev, progress=False, on_phase=hook)
+    finally:
+        sys.settrace(None)
+    assert landed == [{"A": "SAR", "B": "SCU"}[dialect]], landed  # between the poll's beam reading and SIN
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[seen["n"] :]]
+    first = after.index("XOF")
+    assert "SER" in after[first:], after  # read once the tube is off, never before the XOF
+    c = contents(p.output)
+    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_landing_in_the_periods_error_code_read_reads_it_once_more(tmp_path, scene_toml, bench, dialect):
+    """The last place of a beam period a stop can land: the ``SER`` read after its normal ``XOF``
+    (``_beam_off``), which vouches for the period's frames since the last read with the beam on.
+    The stop left it unread, and since the period had ended the stop path read none: a controller
+    code that came up in the period left its frames valid. The stop path reads it once (the
+    tube off, its own ``XOF`` not held back): the code labels the frames since the last good
+    ``SER`` invalid. A trace function raises the signal (a real ``SIGINT``) as the read begins."""
+    from acquisition.guardian import StopSignal
+    from acquisition.l8121 import ERROR_POLL_MAX_S
+
+    p = protocol(tmp_path, scene_toml, dialect, link_s=0.002, darks=1, flats=1, frames_per_step=3, steps=[0.15])
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    landed = []
+
+    def in_main(frame, event, arg):
+        if frame.f_code.co_name == "error_code_after_beam":
+            sys.settrace(None)
+            landed.append([e.command for e in model.log][-2:])
+            signal.raise_signal(signal.SIGINT)
+        return None
+
+    # the step's second frame: the code; its last: the trace set for the period's SER after its XOF
+    hook, seen = _at_frames(model, {4: lambda: model.controller_error(2), 5: lambda: sys.settrace(in_main)})
+    try:
+        with pytest.raises(StopSignal) as info:
+            run(p, devices=dev, progress=False, on_phase=hook)
+    finally:
+        sys.settrace(None)
+    assert landed == [["XOF", "STS"]], landed  # the period's normal switch-off, confirmed, and no SER yet
+    res = info.value.result
+    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
+    after = [e.command for e in model.log[seen["n"] :]]
+    assert after.count("SER") == 1 and after.index("SER") > after.index("XOF"), after
+    c = contents(p.output)
+    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
+    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
+
+
 def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(
     tmp_path, scene_toml, bench, capsys
 ):

@@ -873,6 +873,9 @@ class _BeamMonitor:
         self.last_ok = 0.0  # time.time() just before the last poll that found the beam good
         self.written = []  # (file index, frame time) of the frames taken in this beam period
         self.off_failed = False
+        # this beam period's SER after its XOF not read yet (confirm_error_code): a stop landing
+        # before or in that read leaves it to the stop path (_stop), the tube then off
+        self.error_code_due = False
         self._stop = threading.Event()
         self._thread = None
 
@@ -880,6 +883,7 @@ class _BeamMonitor:
         self.kv, self.ua = kv, ua
         self.error = None
         self.written = []
+        self.error_code_due = True
         self.last_ok = time.time()  # on() has just confirmed the beam
         self._stop.clear()
         self._thread = threading.Thread(target=self._loop, name="beam-monitor", daemon=True)
@@ -925,7 +929,11 @@ class _BeamMonitor:
         t = time.time()
         try:
             reading = self.source.check(error_code=error_code)
-        except BaseException as exc:
+        except Exception as exc:
+            # (a stop landing in this thread's poll -- KeyboardInterrupt, StopSignal -- is no
+            # reading of the beam: recorded here, the stop path took it for a fault and read no
+            # SER after its XOF; it cut the poll short, which then vouches for nothing, as
+            # SwitchedOff does)
             self.error = exc
             self._unvouch(exc)
             raise
@@ -935,13 +943,17 @@ class _BeamMonitor:
     def confirm_error_code(self):
         """The tube off after this beam period: the controller's error code read once more (the
         driver's ``error_code_after_beam``); a code not allowed, or no reading, takes the vouching
-        back to the last good ``SER`` and is recorded (and raised) like a poll's fault."""
+        back to the last good ``SER`` and is recorded (and raised) like a poll's fault. A stop
+        landing in it (KeyboardInterrupt, StopSignal) is no reading: not recorded, the read left
+        to the stop path (``error_code_due``)."""
         try:
             self.source.error_code_after_beam()
-        except BaseException as exc:
+        except Exception as exc:
+            self.error_code_due = False
             self.error = exc
             self._unvouch(exc)
             raise
+        self.error_code_due = False
 
     def _unvouch(self, exc):
         """A fault that may have stood since before the last good poll (a controller error code,
@@ -1839,17 +1851,25 @@ def _stop(r: _Run, exc: BaseException):
     beam_period = r.beam_since is not None
     unvouched = False
     if beam_period and monitor is not None:
-        if monitor.error is None and not isinstance(exc, DeviceError) or isinstance(exc, DetectorTimeout):
+        # A poll the stop itself cut short (SwitchedOff) saw no fault. The signal's watcher thread
+        # cancels routine readings at once (on_signal), so the monitor's poll in flight may record
+        # its SwitchedOff before this thread, still raising the stop, gets here: taken for a fault,
+        # it left the stop's SER unread (make test on a loaded machine, session 52)
+        no_fault = _only_cut_short(monitor.error)
+        if no_fault and not _source_error(exc) or isinstance(exc, DetectorTimeout):
             # stopped for another reason (a signal, the disk, the detector): X-rays off first. A poll
             # to vouch for the frames since the last one would keep the beam on for its exchanges
             # (A: SAR, SIN; B: STS, SHV, SCU, SIN); those frames are labelled invalid instead
             unvouched = True
-        elif monitor.error is None:
+        elif no_fault:
             monitor.error = exc  # a source error raised in this thread (on(), check())
     _tube_off(r)  # halts the monitor, switches off before the rest of its poll, then joins it
     exc = r.stopped_by = _file_lost_cause(r, _watchdog_cause(r, exc))
     _beam_fault_not_stopped_on(monitor, exc)
-    if unvouched and res.tube_off and _only_cut_short(monitor.error):
+    # (a stop after a period's normal XOF but before or in its SER read: unvouched is not set, the
+    # period having ended, and the read is still due)
+    due = unvouched or monitor is not None and monitor.error_code_due
+    if due and res.tube_off and _only_cut_short(monitor.error):
         _error_code_after_stop(monitor)
     _stop_frame(r)
     if res.tube_off is None:
@@ -1909,6 +1929,12 @@ def _only_cut_short(error) -> bool:
     from acquisition.l8121 import SwitchedOff
 
     return error is None or isinstance(error, SwitchedOff)
+
+
+def _source_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is the source's own error, not this thread's reading cut short by the
+    stop's switch-off (:class:`~acquisition.l8121.SwitchedOff`, which vouches for nothing)."""
+    return isinstance(exc, DeviceError) and not _only_cut_short(exc)
 
 
 def _error_code_after_stop(monitor) -> None:
