@@ -1954,8 +1954,10 @@ def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
-    with _printable_names(), _signals_given_back(True):
-        return _main(argv)
+    with _printable_names():
+        with _signals_given_back(True):
+            code = _main(argv)
+        return _stopped_after_the_end(code)  # read once the caller's handlers are back: none lost
 
 
 def script() -> int:
@@ -1963,8 +1965,21 @@ def script() -> int:
     a finished ``acquire`` leaves the stop signals ignored until the process exits (see
     :func:`_signals_given_back`). Only for a process that ends as it returns: a Python program
     that goes on calls :func:`main`, which gives its handlers back however it ends."""
-    with _printable_names(), _signals_given_back(False):
-        return _main(None)
+    with _printable_names():
+        with _signals_given_back(False):
+            code = _main(None)
+        return _stopped_after_the_end(code)  # read once they are ignored: none lost
+
+
+def _stopped_after_the_end(code: int) -> int:
+    """``code``, or 128 + N where it is 0 and stop signal N came after the command's outcome was
+    decided (an ``acquire source`` action's guard's ``finish``: recorded, not acted on, by
+    :func:`radiokit.interrupts.note_after_the_end`). Why: ignored, a Ctrl-C in a probe's last
+    30-150 ms was lost and exit 0 let `probe && source on` switch X-rays on after it (review of
+    s52). Any other code stays: 3 (the tube not confirmed off) and 2 say more than the stop."""
+    interrupts = sys.modules.get("radiokit.interrupts")  # not imported: no command ran (its import was stopped)
+    signum = interrupts.stop_after_the_end() if interrupts is not None else None
+    return 128 + signum if code == 0 and signum is not None else code
 
 
 #: The signals a command may take over (radiokit.interrupts.STOP_SIGNALS, and acquire's Ctrl-Z).
@@ -1981,7 +1996,8 @@ def _signals_given_back(give: bool):
     script (:func:`script`), whose process ends as it returns: a finished ``acquire`` leaves them
     ignored until the process exits (its guard's ``finish``), since Python's own finalization
     turns a Python handler back into the default action, and a Ctrl-C then ended a complete
-    series by SIGINT."""
+    series by SIGINT. A source action's guard leaves them recorded (its ``finish``): set to
+    ignore here, as the block ends, after which the record is complete."""
     found = {}
     if give and _on_main_thread():
         found = {sig: signal.getsignal(sig) for sig in _TAKEN}
@@ -1991,6 +2007,13 @@ def _signals_given_back(give: bool):
         for sig, handler in found.items():
             if handler is not None:  # None: installed outside Python, cannot be put back
                 signal.signal(sig, handler)
+        # (imported by _main, inside its "interrupted while starting" block: not here, outside it)
+        interrupts = sys.modules.get("radiokit.interrupts")
+        if not give and interrupts is not None and _on_main_thread():
+            for sig in _TAKEN:
+                # (signal.signal runs a handler still pending before it changes it: it is recorded)
+                if signal.getsignal(sig) is interrupts.note_after_the_end:
+                    signal.signal(sig, signal.SIG_IGN)
 
 
 def _on_main_thread() -> bool:
@@ -2090,8 +2113,9 @@ def _main(argv) -> int:
         # a command's own module (acquire's: the X-ray driver) is imported as the parser is built:
         # a stop here is one line too, nothing opened yet (the command's handlers come later);
         # so is one while this first import runs (a traceback and death by SIGINT, before)
-        from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
+        from radiokit.interrupts import STOP_SIGNALS, exit_status, forget_stops_after_the_end, lost_stops_redelivered
 
+        forget_stops_after_the_end()  # a command of its own (main() may run several in one process)
         parser = build_parser()
         args = parser.parse_args(argv)
     except KeyboardInterrupt as exc:

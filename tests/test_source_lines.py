@@ -17,6 +17,7 @@ import logging
 import os
 import re
 import signal
+import sys
 import threading
 
 import pytest
@@ -484,3 +485,116 @@ def test_a_hold_whose_switch_off_is_not_confirmed_ends_on_the_warning(fast, caps
     assert code == 3 and err[-1] == TUBE_WARNING, (out, err)
     assert err[-2] == f"error: {port}: {_unconfirmed('XRAY_ON')}", err
     assert not any("tube off" in line for line in out + err), (out, err)
+
+
+def _stop_in_the_last_moments(monkeypatch, where: str) -> None:
+    """A real SIGINT to this process in a command's last moments, hit deterministically (no sleep):
+    right after its guard's ``finish()`` (the outcome decided, the tube's line said or about to be),
+    or right after the guard is left (the command returned, the process not yet ended)."""
+    import acquisition.cli
+    from acquisition.guardian import SignalGuard
+
+    ctrl_c = lambda: os.kill(os.getpid(), signal.SIGINT)
+    if where == "after finish":
+        finish = SignalGuard.finish
+
+        def finished(self, *args, **kwargs):
+            finish(self, *args, **kwargs)
+            ctrl_c()
+
+        monkeypatch.setattr(SignalGuard, "finish", finished)
+    else:
+        guarded = acquisition.cli._guarded
+
+        def left(*args):
+            code = guarded(*args)
+            ctrl_c()
+            return code
+
+        monkeypatch.setattr(acquisition.cli, "_guarded", left)
+
+
+@pytest.mark.parametrize("where", ["after finish", "after the guard"])
+@pytest.mark.parametrize("action", ["probe", "off"])
+@pytest.mark.parametrize("entry", ["script", "main"])
+def test_a_ctrl_c_in_a_source_command_s_last_moments_exits_130_not_0(
+    dialect, capsys, monkeypatch, action, where, entry
+):
+    """Found (review of s52): once a source command's outcome was decided its stop signals were
+    ignored, and a Ctrl-C in the 20-150 ms to the process's end was lost: exit 0, and `radiokit
+    acquire source probe ... && radiokit acquire source on ...` switched X-rays on after the
+    operator's Ctrl-C. Now such a stop is recorded, not acted on: the lines stay as they were (the
+    tube's state last), the exit code is 130 -- through the console script (``script()``, which
+    leaves the signals ignored for the interpreter's end: it must not die by the signal then) and
+    through ``main()`` (which gives a calling program its handlers back). Real emulator on a
+    pseudo-terminal, a real SIGINT."""
+    from radiokit.cli import _TAKEN, main, script
+
+    def mine(signum, frame):  # the calling program's own handler: never run inside the command
+        raise AssertionError("the caller's handler ran inside the command")
+
+    before = {sig: signal.signal(sig, mine) for sig in _TAKEN}
+    try:
+        _stop_in_the_last_moments(monkeypatch, where)
+        model = L8121Model(dialect=dialect, warmed_up=True)
+        with PtyServer(model) as server:
+            dialect_given = [] if action == "probe" else ["--dialect", dialect]
+            argv = ["acquire", "source", action, "--port", server.url, *dialect_given]
+            if entry == "script":
+                monkeypatch.setattr(sys, "argv", ["radiokit", *argv])
+                code = script()
+            else:
+                code = main(argv)
+            after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    out, err = capsys.readouterr()
+    assert code == 128 + signal.SIGINT, (code, out, err)
+    assert not model.xray_on and "state STANDBY" in out, (out, err)  # the probe's report, or the tube's line
+    # nothing said of the stop: the command's lines stay as they were, the tube's state the last
+    said = out + err
+    assert not any(word in said for word in ("Traceback", "stopped by", "interrupted", "please wait")), said
+    # the console script's process ends with them ignored (Python's finalization would turn a
+    # handler back into the default: death by SIGINT); main() gives the caller's back
+    assert after == dict.fromkeys(_TAKEN, signal.SIG_IGN if entry == "script" else mine), after
+
+
+#: a console script's process whose probe gets a real Ctrl-C right after its guard's finish(), and
+#: another after script() returned, as the interpreter ends (argv: the port)
+_PROBE_STOPPED_AT_ITS_END = """
+import os, signal, sys
+from acquisition.guardian import SignalGuard
+from radiokit.cli import script
+finish = SignalGuard.finish
+def finished(self, *args, **kwargs):
+    finish(self, *args, **kwargs)
+    os.kill(os.getpid(), signal.SIGINT)
+SignalGuard.finish = finished
+sys.argv = ["radiokit", "acquire", "source", "probe", "--port", sys.argv[1]]
+code = script()
+os.kill(os.getpid(), signal.SIGINT)
+sys.exit(code)
+"""
+
+
+def test_a_console_script_stopped_at_its_end_exits_130_and_is_not_killed_by_the_signal():
+    """The whole process, as the shell sees it: a Ctrl-C after the probe's outcome was decided
+    gives exit 130 (0 before: `probe && source on` went on), and one as the interpreter ends,
+    when a Python handler would have been turned back into the default, neither kills it by
+    SIGINT (exit -2) nor changes its code. Real emulator on a pseudo-terminal, real signals."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        res = subprocess.run(
+            [sys.executable, "-c", _PROBE_STOPPED_AT_ITS_END, server.url],
+            capture_output=True,
+            text=True,
+            cwd=root,
+            timeout=60,
+        )
+    assert res.returncode == 128 + signal.SIGINT, (res.returncode, res.stdout, res.stderr)
+    assert "state STANDBY" in res.stdout and "Traceback" not in res.stderr, (res.stdout, res.stderr)
