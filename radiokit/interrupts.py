@@ -41,6 +41,7 @@ __all__ = [
     "die_with_parent",
     "note_after_the_end",
     "stop_after_the_end",
+    "stops_after_the_end",
     "forget_stops_after_the_end",
 ]
 
@@ -383,17 +384,25 @@ def note_after_the_end(signum, frame) -> None:
     `radiokit acquire source probe ... && radiokit acquire source on ...` switch X-rays on after
     it (review of s52). Why not act on it: the tube's line is said and must stay the last, and a
     raise there cut the link's close short."""
-    _AFTER_THE_END.append(int(signum))
+    stops_after_the_end().append(int(signum))
 
 
 def stop_after_the_end() -> int | None:
     """The first stop :func:`note_after_the_end` recorded since :func:`forget_stops_after_the_end`."""
-    return _AFTER_THE_END[0] if _AFTER_THE_END else None
+    record = stops_after_the_end()
+    return record[0] if record else None
+
+
+def stops_after_the_end() -> list[int]:
+    """The current command's record (a new list for each command: a hook holding one knows
+    whether another command has begun since)."""
+    return _AFTER_THE_END
 
 
 def forget_stops_after_the_end() -> None:
     """A new command begins (``main()`` may run several in one process)."""
-    _AFTER_THE_END.clear()
+    global _AFTER_THE_END
+    _AFTER_THE_END = []
 
 
 #: prctl(2)'s option asking the kernel for a signal when this process's parent dies (linux/prctl.h).
