@@ -337,8 +337,9 @@ def _guarded(command, *args) -> int:
     try:
         with SignalGuard() as guard:
             code = command(guard, *args)
-            # decided and said: a stop from now until the process exits changes nothing (the
-            # series' own command has ignored them since its outcome: _series)
+            # decided and said: a stop from now until the process exits is recorded, and turns the
+            # console script's exit 0 into 128 + N at its end (radiokit.cli.script; the series'
+            # own command has ignored them since its outcome: _series)
             guard.finish()
             if code == 0 and guard.acknowledged is not None:
                 # a stop only acknowledged ("please wait": it did not cut the switch-off short):
@@ -350,7 +351,7 @@ def _guarded(command, *args) -> int:
         if code is None:  # the command's own, not the guard's as it was left
             raise
         # 3 (the tube not confirmed off) is never replaced. Nor was 0 ("the command had finished
-        # when the stop came", review s32-r3), but after finish() the stop signals are ignored: a
+        # when the stop came", review s32-r3), but after finish() the stop signals are only recorded: a
         # stop raised here came while the command ran (lost in a finalizer, delivered again), and
         # 0 let `probe && source on` switch X-rays on after that Ctrl-C: 128 + N, as one only
         # acknowledged (review s52rvacq)
@@ -386,12 +387,12 @@ def _series(guard, args, p) -> int:
     except KeyboardInterrupt as exc:
         # the outcome is decided (stopped; the tube dealt with): a further Ctrl-C must neither cut
         # the lines below short nor end the process by SIGINT after them (SignalGuard.finish)
-        guard.finish()
+        guard.finish(record=False)
         r = getattr(exc, "result", None)
         _say(_stopped_line(exc, r, args, p))
         return _finish(r, 128 + getattr(exc, "signum", 2))
     except Exception as exc:
-        guard.finish()
+        guard.finish(record=False)
         r = getattr(exc, "result", None)
         known = isinstance(exc, (DeviceError, OSError, ValueError))
         _say(f"error: {'' if known else type(exc).__name__ + ': '}{_one_line(exc)}")
@@ -409,8 +410,10 @@ def _series(guard, args, p) -> int:
             )
         return _finish(r, 1)
     # complete, the tube confirmed off or the warning due: a Ctrl-C from here on (up to 100 ms
-    # after the last line, as the interpreter finishes) changes nothing and says nothing
-    guard.finish()
+    # after the last line, as the interpreter finishes) changes nothing and says nothing -- the
+    # exit code included: 0 says the file holds the whole series, which it does (a source
+    # command's records it: SignalGuard.finish)
+    guard.finish(record=False)
     if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
         _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
         return 0
@@ -791,7 +794,7 @@ def _probe_found(guard, result, args, state) -> int:
     notes' pre-heating, after power-on, is no beam to switch off).
 
     The wait for the power-on checks, the switch-off and their lines run under one signal guard,
-    finished (stop signals ignored: :meth:`~acquisition.guardian.SignalGuard.finish`) only once the
+    finished (stop signals recorded, not acted on: :meth:`~acquisition.guardian.SignalGuard.finish`) only once the
     switch-off is confirmed or warned of. Under two, the wait's guard, finished as it ended, left
     the signals ignored until the switch-off's was entered, the tube read on meanwhile."""
     if state is not None and state.confirms_off:  # nothing to wait for or switch off

@@ -51,7 +51,15 @@ import threading
 import time
 from pathlib import Path
 
-from radiokit.interrupts import STOP_SIGNALS, Interrupted, after_import, deferred, raise_stop, redeliver
+from radiokit.interrupts import (
+    STOP_SIGNALS,
+    Interrupted,
+    after_import,
+    deferred,
+    note_after_the_end,
+    raise_stop,
+    redeliver,
+)
 
 __all__ = ["StopSignal", "SignalGuard", "start_guardian", "TUBE_WARNING", "main"]
 
@@ -191,7 +199,7 @@ class SignalGuard:
         self._cleaning = False  # cleanup() entered: the switch-off owns the run
         self._old_hook = None  # sys.unraisablehook while the guard is installed
         self._redelivered: list = []  # stops lost in a finalizer, being delivered again
-        self.left: dict[int, object] = {}  # the handlers replaced, once finish() ignores the signals
+        self.left: dict[int, object] = {}  # the handlers replaced, once finish() records or ignores the signals
         # the first stop only acknowledged ("please wait"): a command whose switch-off it did not cut
         # short still says it was stopped (exit 128 + N, the tube confirmed off: `source probe`)
         self.acknowledged: int | None = None
@@ -320,28 +328,34 @@ class SignalGuard:
         self.stopping = self._cleaning = True
         return self
 
-    def finish(self) -> None:
+    def finish(self, record: bool = True) -> None:
         """The run's outcome is decided (the tube dealt with, the exit code chosen): from now on
-        its signals are ignored, and stay ignored when the guard is left, until the process
-        exits. For a command line, whose last lines follow and whose process ends with them.
+        its signals are recorded, not acted on (``record``: :func:`~radiokit.interrupts.note_after_the_end`,
+        which the command line turns into exit 128 + N in place of 0), or, without ``record``,
+        ignored; either stays so when the guard is left. For a command line, whose last lines
+        follow and whose process ends with them. A second call keeps what the first chose.
 
         Why: left as before, the guard gave the signals back to the command line's handler,
         which raises, and Python's own finalization sets a Python handler back to the default:
         a Ctrl-C in the 10-100 ms between a complete series' last line and the exit ended the
         process by SIGINT (exit -2), or said "interrupted; no partial output was left" under 8
         frames written (review s49). Nor a handler that says something: the tube's line stays the
-        last, and "switching the X-ray tube off first, please wait" came after it. Ignored, not
-        deferred: nothing is left to stop. A caller that goes on in the same process puts back
-        what it had (:attr:`left`: the handlers this guard replaced). A stop lost in a finalizer
-        before it is still raised as the guard is left (:meth:`settle`)."""
-        if not self._old:  # not installed (another thread): nothing to ignore
+        last, and "switching the X-ray tube off first, please wait" came after it. Recorded, not
+        ignored, for a source command: ignored, a Ctrl-C in a probe's last 30-150 ms exited 0 and
+        `probe && source on` switched X-rays on after it (review of s52). Ignored for a finished
+        series (``record=False``): its summary line is said, and its exit 0 says the file is
+        complete (tests/test_safety.py's storm). The console script sets the recorded ones to
+        ignore for the interpreter's end (``radiokit.cli.script``). A caller that goes on in
+        the same process puts back what it had (:attr:`left`: the handlers this guard replaced).
+        A stop lost in a finalizer before it is still raised as the guard is left (:meth:`settle`)."""
+        if not self._old or self.left:  # not installed (another thread): nothing to do; or finished
             return
+        # the handlers the first call found (a second found only this guard's own, review s50rv2)
+        self.left = dict(self._old)
+        after = note_after_the_end if record else signal.SIG_IGN
         for sig in self._old:
-            signal.signal(sig, signal.SIG_IGN)
-        # a second call (the command line's series: its command, then the guard's runner) keeps
-        # the handlers the first found: it found only SIG_IGN, the guard's own (review s50rv2)
-        self.left = self.left or dict(self._old)
-        self._old = dict.fromkeys(self._old, signal.SIG_IGN)  # what __exit__ puts in place
+            signal.signal(sig, after)
+        self._old = dict.fromkeys(self._old, after)  # what __exit__ puts in place
 
     def _unraisable(self, unraisable) -> None:
         """Python drops an exception raised while a finalizer runs (h5py's weak references die

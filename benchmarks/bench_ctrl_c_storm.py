@@ -8,7 +8,8 @@ Run::
 own process group, against the L8121 emulator that this script serves on a pseudo-terminal
 (``[sim] source_port``). From the trigger on -- ``summary``: the "N frames written" line (the
 series complete); ``last``: the notebook's line for the last frame (in its exposure); ``on``:
-`source on --for 0.3`'s "over: tube off" line instead of a series -- a Ctrl-C (SIGINT to the
+`source on --for 0.3`'s "over: tube off" line instead of a series; ``probe``: `source probe`'s
+report line (a probe run instead: a run is bad then when it exits 0 after a Ctrl-C) -- a Ctrl-C (SIGINT to the
 group, as a terminal sends it) every 2 ms until the command exits; with ``--delays 0,5,10``, one
 Ctrl-C per run instead, that many ms after the trigger (a run per delay). A run is bad when it exits
 other than 0 or 130 (-2: ended by the signal itself), says "no partial output" or prints a
@@ -74,10 +75,14 @@ def one_run(
         if trigger == "on":
             args = ["source", "on", "--port", server.url, "--dialect", dialect, "--kv", "60", "--ua", "250"]
             args += ["--for", "0.3"]
+        elif trigger == "probe":
+            args = ["source", "probe", "--port", server.url]
         else:
             args = [str(_protocol(folder, server.url, dialect)), "--sim"]
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-        code = "import sys; from radiokit.cli import main; sys.exit(main())"
+        if trigger == "probe":  # its report goes to stdout, line by line as at a terminal (a pipe holds it to the exit)
+            env["PYTHONUNBUFFERED"] = "1"
+        code = "import sys; from radiokit.cli import script; sys.exit(script())"  # the console script
         proc = subprocess.Popen(
             [sys.executable, "-c", code, "acquire", *args, "-q"],
             stdin=subprocess.DEVNULL,
@@ -98,6 +103,8 @@ def one_run(
                 return any("frames written" in ln for ln in lines)
             if trigger == "on":
                 return any(" s over: tube off" in ln for ln in lines)
+            if trigger == "probe":  # its report: the state the probe's STS read
+                return any(" state " in ln for ln in lines)
             return notebook.exists() and "frame 7 written" in notebook.read_text(errors="replace")
 
         end = time.monotonic() + 120
@@ -123,10 +130,12 @@ def one_run(
         xray_on = model.xray_on
     text = "\n".join(lines)
     last = next((ln.strip() for ln in reversed(lines) if ln.strip()), "")
-    bad = [f"exit {status}"] if status not in (0, 130) else []
+    # a probe a Ctrl-C reached before its end must not exit 0 (`probe && source on` goes on)
+    bad = [f"exit {status}"] if status not in ((130,) if trigger == "probe" and sent else (0, 130)) else []
     bad += ["'no partial output'"] if "no partial output" in text else []
     bad += ["traceback"] if "Traceback" in text or "Exception ignored" in text else []
-    bad += [] if CONFIRMED.search(last) else [f"last line {last[-60:]!r}"]
+    if trigger != "probe":  # (the probe's last line is its report's raw exchange)
+        bad += [] if CONFIRMED.search(last) else [f"last line {last[-60:]!r}"]
     bad += ["X-RAYS ON"] if xray_on else []
     return status, sent, bad, lines
 
@@ -134,7 +143,7 @@ def one_run(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dialect", choices=("A", "B"), default="A")
-    ap.add_argument("--trigger", choices=("summary", "last", "on"), default="summary")
+    ap.add_argument("--trigger", choices=("summary", "last", "on", "probe"), default="summary")
     ap.add_argument("--runs", type=int, default=10)
     ap.add_argument("--delays", help="one Ctrl-C a run, this many ms after the trigger (comma-separated)")
     args = ap.parse_args()

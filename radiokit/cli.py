@@ -1954,17 +1954,90 @@ def main(argv=None) -> int:
     """Run a subcommand. A user-caused error (a bad file, parameter or output; a full disk) is
     one line ``radiokit CMD: FILE: PROBLEM`` on stderr and exit code 2; anything else is a bug
     and keeps its traceback. ``--debug`` or ``RADIOKIT_DEBUG=1`` shows tracebacks for all."""
-    with _printable_names(), _signals_given_back(True):
-        return _main(argv)
+    with _printable_names():
+        with _signals_given_back(True):
+            code = _main(argv)
+        return _stopped_after_the_end(code)  # read once the caller's handlers are back: none lost
 
 
 def script() -> int:
     """The ``radiokit`` console script: :func:`main` on the command line's arguments, except that
-    a finished ``acquire`` leaves the stop signals ignored until the process exits (see
-    :func:`_signals_given_back`). Only for a process that ends as it returns: a Python program
-    that goes on calls :func:`main`, which gives its handlers back however it ends."""
-    with _printable_names(), _signals_given_back(False):
-        return _main(None)
+    a finished ``acquire`` leaves the stop signals recorded, then ignored, until the process
+    exits (see :func:`_signals_given_back` and :class:`_AtTheExit`). Only for a process that ends
+    as it returns: a Python program that goes on calls :func:`main`, which gives its handlers
+    back however it ends."""
+    import atexit
+
+    global _AT_THE_EXIT
+    if _AT_THE_EXIT is not None:  # script() run again in one process (tests): one hook, the last command's
+        atexit.unregister(_AT_THE_EXIT)
+    # registered before the command imports anything: atexit runs the last registered first, so
+    # this runs after every other callback, as late as Python code runs
+    _AT_THE_EXIT = _AtTheExit()
+    atexit.register(_AT_THE_EXIT)
+    with _printable_names():
+        with _signals_given_back(False):
+            code = _main(None)
+        code = _stopped_after_the_end(code)
+        _AT_THE_EXIT.armed(code)
+        return code
+
+
+class _AtTheExit:
+    """The console script's last Python code (an ``atexit`` callback, run after every other), for
+    a source action whose guard left the stop signals recorded (its ``finish``): the exit code
+    with any stop recorded since ``script()`` returned (0 becomes 128 + N), given by
+    ``os._exit`` after the flushes -- the interpreter's own end is skipped.
+
+    Why: measured, a source command lived 20-45 ms after its last ``atexit`` callback (Python
+    tearing its modules down), against 0-1 ms from its outcome to ``script()``'s return: the
+    reviewer's 31-145 ms window was that end. No Python handler runs there, and Python's
+    finalization sets one back to the default (a Ctrl-C then ended the process by SIGINT,
+    review s49), so they were ignored, and a Ctrl-C there was lost: exit 0, and `probe && source
+    on` switched X-rays on after it (review of s52). Nothing is left to tear down: the port is
+    closed, the guardian gone, no file written. Other commands end as Python ends them."""
+
+    def __init__(self):
+        self.code: int | None = None
+        self.record: list[int] | None = None
+
+    def armed(self, code: int) -> None:
+        interrupts = sys.modules.get("radiokit.interrupts")
+        if interrupts is not None:
+            self.code, self.record = code, interrupts.stops_after_the_end()
+
+    def __call__(self) -> None:
+        interrupts = sys.modules.get("radiokit.interrupts")
+        # another command since (main() in the same process) or none armed: not this hook's
+        if self.record is None or interrupts is None or interrupts.stops_after_the_end() is not self.record:
+            return
+        recording = [sig for sig in _TAKEN if signal.getsignal(sig) is interrupts.note_after_the_end]
+        if not recording or not _on_main_thread():  # not a source action's end (or its handlers given back)
+            return
+        for sig in recording:
+            # (signal.signal runs a handler still pending before it changes it: it is recorded)
+            signal.signal(sig, signal.SIG_IGN)
+        code = _stopped_after_the_end(self.code)
+        logging.shutdown()  # (registered before this hook: it would have run after it)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
+
+
+#: the console script's hook, the last script() call's (tests run several in one process)
+_AT_THE_EXIT: _AtTheExit | None = None
+
+
+def _stopped_after_the_end(code: int) -> int:
+    """``code``, or 128 + N where it is 0 and stop signal N came after the command's outcome was
+    decided (an ``acquire source`` action's guard's ``finish``: recorded, not acted on, by
+    :func:`radiokit.interrupts.note_after_the_end`). Why: ignored, a Ctrl-C in a probe's last
+    30-150 ms was lost and exit 0 let `probe && source on` switch X-rays on after it (review of
+    s52). Any other code stays: 3 (the tube not confirmed off) and 2 say more than the stop."""
+    interrupts = sys.modules.get("radiokit.interrupts")  # not imported: no command ran (its import was stopped)
+    signum = interrupts.stop_after_the_end() if interrupts is not None else None
+    return 128 + signum if code == 0 and signum is not None else code
 
 
 #: The signals a command may take over (radiokit.interrupts.STOP_SIGNALS, and acquire's Ctrl-Z).
@@ -1981,7 +2054,8 @@ def _signals_given_back(give: bool):
     script (:func:`script`), whose process ends as it returns: a finished ``acquire`` leaves them
     ignored until the process exits (its guard's ``finish``), since Python's own finalization
     turns a Python handler back into the default action, and a Ctrl-C then ended a complete
-    series by SIGINT."""
+    series by SIGINT. A source action's guard leaves them recorded (its ``finish``), to the
+    console script's exit (:class:`_AtTheExit`)."""
     found = {}
     if give and _on_main_thread():
         found = {sig: signal.getsignal(sig) for sig in _TAKEN}
@@ -2090,8 +2164,9 @@ def _main(argv) -> int:
         # a command's own module (acquire's: the X-ray driver) is imported as the parser is built:
         # a stop here is one line too, nothing opened yet (the command's handlers come later);
         # so is one while this first import runs (a traceback and death by SIGINT, before)
-        from radiokit.interrupts import STOP_SIGNALS, exit_status, lost_stops_redelivered
+        from radiokit.interrupts import STOP_SIGNALS, exit_status, forget_stops_after_the_end, lost_stops_redelivered
 
+        forget_stops_after_the_end()  # a command of its own (main() may run several in one process)
         parser = build_parser()
         args = parser.parse_args(argv)
     except KeyboardInterrupt as exc:

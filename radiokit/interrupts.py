@@ -39,6 +39,10 @@ __all__ = [
     "deferred",
     "held",
     "die_with_parent",
+    "note_after_the_end",
+    "stop_after_the_end",
+    "stops_after_the_end",
+    "forget_stops_after_the_end",
 ]
 
 #: The signals every command stops on as on Ctrl-C. SIGQUIT (Ctrl-\) too: the terminal sends it to
@@ -365,6 +369,40 @@ def held(*signals):
             signal.signal(sig, handler)
         if came:
             signal.raise_signal(came[0])
+
+
+#: the stop signals that came after a command's outcome was decided, in order (:func:`note_after_the_end`)
+_AFTER_THE_END: list[int] = []
+
+
+def note_after_the_end(signum, frame) -> None:
+    """A stop signal's handler once a command's outcome is decided (the X-ray guard's ``finish``):
+    the stop is recorded, nothing else -- no line, no exception, no death by the signal. The
+    command line turns its exit 0 into 128 + N at its very end (:func:`stop_after_the_end`).
+
+    Why not ignore it: a Ctrl-C in a source command's last 20-150 ms was lost, and exit 0 let
+    `radiokit acquire source probe ... && radiokit acquire source on ...` switch X-rays on after
+    it (review of s52). Why not act on it: the tube's line is said and must stay the last, and a
+    raise there cut the link's close short."""
+    stops_after_the_end().append(int(signum))
+
+
+def stop_after_the_end() -> int | None:
+    """The first stop :func:`note_after_the_end` recorded since :func:`forget_stops_after_the_end`."""
+    record = stops_after_the_end()
+    return record[0] if record else None
+
+
+def stops_after_the_end() -> list[int]:
+    """The current command's record (a new list for each command: a hook holding one knows
+    whether another command has begun since)."""
+    return _AFTER_THE_END
+
+
+def forget_stops_after_the_end() -> None:
+    """A new command begins (``main()`` may run several in one process)."""
+    global _AFTER_THE_END
+    _AFTER_THE_END = []
 
 
 #: prctl(2)'s option asking the kernel for a signal when this process's parent dies (linux/prctl.h).

@@ -1722,13 +1722,16 @@ def test_main_without_argv_gives_a_calling_program_its_stop_signals_back(tmp_pat
 
 
 _RUN_AS_MODULE = """
-import atexit, runpy, signal, sys
+import os, runpy, signal, sys
 
-def said():  # as the interpreter exits, after the command's last line
+exit_now = os._exit
+
+def said(code):  # as the console script's last callback ends the process, after the command's last line
     ignored = [signal.getsignal(sig) == signal.SIG_IGN for sig in (signal.SIGINT, signal.SIGTERM)]
-    print("ignored at exit:", ignored, file=sys.stderr)
+    print("ignored at exit:", ignored, file=sys.stderr, flush=True)
+    exit_now(code)
 
-atexit.register(said)
+os._exit = said
 sys.argv = ["radiokit", *sys.argv[1:]]
 runpy.run_module("radiokit.cli", run_name="__main__", alter_sys=True)  # what `python -m radiokit.cli` runs
 """
@@ -1740,7 +1743,8 @@ def test_python_m_radiokit_cli_keeps_a_finished_acquires_signals_ignored_to_the_
     called ``main()``, which since session 52 gives the caller's handlers back: a Ctrl-C between a
     finished acquire's last line and the exit ended it by SIGINT again (review s49), the console
     script (``script()``) not. It runs ``script()`` too. Real emulator on a pseudo-terminal; the
-    module run as ``-m`` runs it (runpy), with a hook that reads the handlers as the interpreter exits."""
+    module run as ``-m`` runs it (runpy), with a hook that reads the handlers as the process ends
+    (the console script's ``os._exit``, which a finished source action's ends with)."""
     from acquisition.emulators.l8121 import L8121Model, PtyServer
 
     with PtyServer(L8121Model(warmed_up=True)) as server:

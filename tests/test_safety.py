@@ -1188,8 +1188,9 @@ def test_ctrl_c_after_source_on_has_switched_off_keeps_its_last_line(controller)
     line: a Ctrl-C that landed as the command let the link go (close(), after that line) ended it
     on "stopped by SIGINT; WARNING: X-RAYS MAY STILL BE ON", exit 130, with the tube confirmed off
     a moment before (3 runs in 3, dialect A). The command's outcome is decided before the link is
-    let go: exit 0 (130 if the stop came before), the tube's confirmed line last, never the
-    warning, never death by the signal."""
+    let go: the tube's confirmed line last, never the warning, never death by the signal; exit
+    130 (a stop after the outcome is recorded, review of s52: 0 let `&&` go on after it), or 0 if
+    every Ctrl-C came after the process's last moment the command line reads (then ignored)."""
     model, server = controller()
     port = ["--port", server.url, "--dialect", model.dialect]
     acq = Acquire("source", "on", *port, "--kv", "60", "--ua", "250", "--for", "0.3", "-q")
@@ -1411,31 +1412,40 @@ def test_the_guard_tells_its_listeners_while_the_main_thread_is_busy():
     assert signal.set_wakeup_fd(-1) == -1
 
 
-def test_a_finished_guard_ignores_a_real_signal_and_keeps_what_it_replaced_through_a_second_finish():
+@pytest.mark.parametrize("record", [False, True])
+def test_a_finished_guard_ignores_a_real_signal_and_keeps_what_it_replaced_through_a_second_finish(record):
     """``finish()``: a real SIGINT and SIGTERM after it neither raise nor say anything, and the
-    signals stay ignored once the guard is left; ``left`` holds the handlers the guard replaced,
+    signals stay so once the guard is left: ignored (``record=False``, a finished series), or
+    recorded in order for the command line's exit code (a source action's, review of s52: ignored,
+    a Ctrl-C in a probe's last moments exited 0); ``left`` holds the handlers the guard replaced,
     for a caller that goes on in the process. The command line finishes a series' guard twice (the
     series' command, then the guard's runner): the second call made ``left`` all SIG_IGN, and a
-    caller putting it back (as the docstring says) left Ctrl-C and kill ignored for good."""
+    caller putting it back (as the docstring says) left Ctrl-C and kill ignored for good; nor does
+    the second call (the runner's, with the default) change what the first chose."""
     from acquisition.guardian import SignalGuard
+    from radiokit.interrupts import forget_stops_after_the_end, note_after_the_end, stop_after_the_end
 
     def mine(signum, frame):  # the caller's own handler, before the guard
         raise AssertionError("the caller's handler ran while the guard was finished")
 
+    after = note_after_the_end if record else signal.SIG_IGN
+    forget_stops_after_the_end()
     before = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         with SignalGuard() as guard:
+            guard.finish(record=record)
             guard.finish()
-            guard.finish()
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.raise_signal(sig)  # ignored: no StopSignal, no "please wait"
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.raise_signal(sig)  # no StopSignal, no "please wait"
             guard.reinstall()  # (the protocol's call at each phase) does not take them back
-            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
-        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN == signal.getsignal(signal.SIGTERM)
+            assert signal.getsignal(signal.SIGINT) == after
+        assert signal.getsignal(signal.SIGINT) == after == signal.getsignal(signal.SIGTERM)
         assert guard.left[signal.SIGINT] is mine and guard.left[signal.SIGTERM] is mine, guard.left
+        assert stop_after_the_end() == (signal.SIGTERM if record else None)  # the first that came
     finally:
         for sig, handler in before.items():
             signal.signal(sig, handler)
+        forget_stops_after_the_end()
 
 
 def test_a_stop_lost_in_a_finalizer_is_delivered_again():
@@ -2041,7 +2051,7 @@ def test_a_probe_stopped_by_a_stop_lost_in_a_finalizer_does_not_exit_0(controlle
     """Review s52rvacq: a Ctrl-C Python dropped in a finalizer during ``source probe`` (delivered
     again 50 ms later) and still on its way as the probe ended was raised only as its guard was left,
     where ``_guarded`` kept the exit code 0 ("the command had finished when the stop came"): it had
-    not -- after ``finish()`` the stop signals are ignored, so every stop raised there came while the
+    not -- after ``finish()`` the stop signals are never raised (ignored, now recorded), so every stop raised there came while the
     command ran. 0 lets `probe && source on` switch X-rays ON after the operator's Ctrl-C; a stop only
     acknowledged exits 128 + N (review s51rv3), and so does this one, the tube's line still the last.
     Fault injection (a signal cannot be aimed at a finalizer from outside): the probe's end drops an

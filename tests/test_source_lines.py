@@ -17,6 +17,7 @@ import logging
 import os
 import re
 import signal
+import sys
 import threading
 
 import pytest
@@ -484,3 +485,134 @@ def test_a_hold_whose_switch_off_is_not_confirmed_ends_on_the_warning(fast, caps
     assert code == 3 and err[-1] == TUBE_WARNING, (out, err)
     assert err[-2] == f"error: {port}: {_unconfirmed('XRAY_ON')}", err
     assert not any("tube off" in line for line in out + err), (out, err)
+
+
+def _stop_in_the_last_moments(monkeypatch, where: str) -> None:
+    """A real SIGINT to this process in a command's last moments, hit deterministically (no sleep):
+    right after its guard's ``finish()`` (the outcome decided, the tube's line said or about to be),
+    or right after the guard is left (the command returned, the process not yet ended)."""
+    import acquisition.cli
+    from acquisition.guardian import SignalGuard
+
+    ctrl_c = lambda: os.kill(os.getpid(), signal.SIGINT)
+    if where == "after finish":
+        finish = SignalGuard.finish
+
+        def finished(self, *args, **kwargs):
+            finish(self, *args, **kwargs)
+            ctrl_c()
+
+        monkeypatch.setattr(SignalGuard, "finish", finished)
+    else:
+        guarded = acquisition.cli._guarded
+
+        def left(*args):
+            code = guarded(*args)
+            ctrl_c()
+            return code
+
+        monkeypatch.setattr(acquisition.cli, "_guarded", left)
+
+
+@pytest.mark.parametrize("where", ["after finish", "after the guard"])
+@pytest.mark.parametrize("action", ["probe", "off"])
+@pytest.mark.parametrize("entry", ["script", "main"])
+def test_a_ctrl_c_in_a_source_command_s_last_moments_exits_130_not_0(
+    dialect, capsys, monkeypatch, action, where, entry
+):
+    """Found (review of s52): once a source command's outcome was decided its stop signals were
+    ignored, and a Ctrl-C in the 20-150 ms to the process's end was lost: exit 0, and `radiokit
+    acquire source probe ... && radiokit acquire source on ...` switched X-rays on after the
+    operator's Ctrl-C. Now such a stop is recorded, not acted on: the lines stay as they were (the
+    tube's state last), the exit code is 130 -- through the console script (``script()``, which
+    records them to its exit, then ignores them: it must not die by the signal then) and
+    through ``main()`` (which gives a calling program its handlers back). Real emulator on a
+    pseudo-terminal, a real SIGINT."""
+    import atexit
+
+    import radiokit.cli
+    from radiokit.cli import _TAKEN, main, script
+    from radiokit.interrupts import note_after_the_end
+
+    def mine(signum, frame):  # the calling program's own handler: never run inside the command
+        raise AssertionError("the caller's handler ran inside the command")
+
+    before = {sig: signal.signal(sig, mine) for sig in _TAKEN}
+    try:
+        _stop_in_the_last_moments(monkeypatch, where)
+        model = L8121Model(dialect=dialect, warmed_up=True)
+        with PtyServer(model) as server:
+            dialect_given = [] if action == "probe" else ["--dialect", dialect]
+            argv = ["acquire", "source", action, "--port", server.url, *dialect_given]
+            if entry == "script":
+                monkeypatch.setattr(sys, "argv", ["radiokit", *argv])
+                code = script()
+            else:
+                code = main(argv)
+            after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+        if radiokit.cli._AT_THE_EXIT is not None:  # the console script's hook: not pytest's exit
+            atexit.unregister(radiokit.cli._AT_THE_EXIT)
+    out, err = capsys.readouterr()
+    assert code == 128 + signal.SIGINT, (code, out, err)
+    assert not model.xray_on and "state STANDBY" in out, (out, err)  # the probe's report, or the tube's line
+    # nothing said of the stop: the command's lines stay as they were, the tube's state the last
+    said = out + err
+    assert not any(word in said for word in ("Traceback", "stopped by", "interrupted", "please wait")), said
+    # the console script's process records them to its exit (ignored for the interpreter's end,
+    # which would turn a handler back into the default: death by SIGINT; the next test); main()
+    # gives the caller's back
+    assert after == dict.fromkeys(_TAKEN, note_after_the_end if entry == "script" else mine), after
+
+
+#: a console script's process whose probe gets a real Ctrl-C right after its guard's finish(), or
+#: after script() returned, or as the interpreter ends (an atexit callback registered first, so run
+#: last; argv: the port, where)
+_PROBE_STOPPED_AT_ITS_END = """
+import atexit, os, signal, sys
+from acquisition.guardian import SignalGuard
+from radiokit.cli import script
+port, where = sys.argv[1:]
+ctrl_c = lambda: os.kill(os.getpid(), signal.SIGINT)
+if where == "as Python ends":
+    atexit.register(ctrl_c)
+finish = SignalGuard.finish
+def finished(self, *args, **kwargs):
+    finish(self, *args, **kwargs)
+    if where == "after finish":
+        ctrl_c()
+SignalGuard.finish = finished
+sys.argv = ["radiokit", "acquire", "source", "probe", "--port", port]
+code = script()
+if where == "after script() returned":
+    ctrl_c()
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("where", ["after finish", "after script() returned", "as Python ends"])
+def test_a_console_script_stopped_at_its_end_is_not_killed_by_the_signal(where):
+    """The whole process, as the shell sees it: a Ctrl-C after the probe's outcome was decided,
+    or after ``script()`` returned (the 20-45 ms the interpreter takes to end: most of the window),
+    gives exit 130 (0 before: `probe && source on` went on). One as Python's last callbacks
+    run, when the handlers are set to ignore (the interpreter's end would turn a Python handler
+    back into the default) does not kill it by SIGINT (exit -2): exit 0, the probe done. Real
+    emulator on a pseudo-terminal, real signals."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    model = L8121Model(dialect="A", warmed_up=True)
+    with PtyServer(model) as server:
+        res = subprocess.run(
+            [sys.executable, "-c", _PROBE_STOPPED_AT_ITS_END, server.url, where],
+            capture_output=True,
+            text=True,
+            cwd=root,
+            timeout=60,
+        )
+    expected = 0 if where == "as Python ends" else 128 + signal.SIGINT
+    assert res.returncode == expected, (res.returncode, res.stdout, res.stderr)
+    assert "state STANDBY" in res.stdout and "Traceback" not in res.stderr, (res.stdout, res.stderr)
