@@ -1288,6 +1288,26 @@ def test_set_values_while_on_waits_for_the_new_beam(source, dialect):
     assert src.check()["current_ua"] >= 0.9 * 400  # judged against the new current: no false "dropped"
 
 
+def test_the_emulators_ramp_time_changed_while_on_applies_from_where_the_tube_is():
+    """A new ``ramp_s`` set while on leaves the measured values where they are and ramps the next
+    change over it: it rescaled the ramp done, and a beam stable at 60 kV 400 µA read about 25 kV
+    once 0.2 s became 0.6 s (the test below then saw a ramp from there, and under load its monitor
+    read a drop). A model clock, so the instants are exact."""
+    now = [0.0]
+    model = L8121Model(warmed_up=True, warmup_s=0, ramp_s=0.2, clock=lambda: now[0])
+    for line in ("HIV 60", "CUR 400", "XON"):
+        model.handle(line)
+    now[0] = 0.25
+    assert model.handle("SAR") == "SAR 3 60 400 0 0 0 0"
+    model.ramp_s = 0.6
+    assert model.handle("SAR") == "SAR 3 60 400 0 0 0 0"
+    model.handle("CUR 100")
+    now[0] = 0.25 + 0.3  # half the new ramp: half-way from 400 to 100 µA
+    assert model.handle("SAR") == "SAR 3 60 250 0 0 0 0"
+    now[0] = 0.25 + 0.6
+    assert model.handle("SAR") == "SAR 3 60 100 0 0 0 0"
+
+
 @pytest.mark.parametrize(("before", "after"), [((60, 400), (60, 100)), ((60, 100), (60, 400))])
 def test_a_monitor_polling_while_set_values_ramps_sees_no_fault(source, dialect, before, after):
     """A beam monitor's check() in another thread while set_values() ramps the beam to a new

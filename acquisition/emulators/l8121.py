@@ -181,7 +181,7 @@ class L8121Model:
         self.dialect = dialect
         self.model = model
         self.warmup_s = float(warmup_s)
-        self.ramp_s = float(ramp_s)
+        self._ramp_s = float(ramp_s)
         self.kv_min, self.kv_max, self.ua_max, self.watts_max = kv_min, kv_max, ua_max, watts_max
         self.baudrate = int(baudrate or DEFAULT_BAUD[dialect])
         self.voltage_scale = float(voltage_scale or (10 if dialect == "B" else 1))
@@ -273,6 +273,22 @@ class L8121Model:
             "SRB": lambda t: "BUSY" if self._state == SourceState.WARMING_UP else "READY",
         }
         return commands, {"HIV", "CUR", "PHV", "PCU"}
+
+    @property
+    def ramp_s(self) -> float:
+        """The ramp's duration, s (see the class's ``ramp_s``)."""
+        return self._ramp_s
+
+    @ramp_s.setter
+    def ramp_s(self, value: float) -> None:
+        # A new duration applies from now, from where the tube is: set while on, it rescaled the
+        # ramp under way or done (a beam stable at 60 kV read 25 kV once 0.2 s became 0.6 s, and
+        # a test of a ramp between two settings saw one from a quarter of the first; s52)
+        with self._lock:
+            if self._state == SourceState.XRAY_ON:
+                self._advance()
+                self._ramp_from, self._ramp_t0 = self._measured(self.time), self.time
+            self._ramp_s = float(value)
 
     # -- read-only state for tests ----------------------------------------------------------------
     @property
