@@ -823,6 +823,53 @@ def test_a_stop_landing_in_the_periods_error_code_read_reads_it_once_more(tmp_pa
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
 
 
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_path_error_code_read_meeting_a_silent_controller_keeps_the_stop(
+    tmp_path, scene_toml, bench, dialect, caplog, monkeypatch
+):
+    """Review s52rvlast of s52ser: the ``SER`` read the stop path owes once the tube is confirmed
+    off (a stop landing in the period's own read after its ``XOF``) may meet a controller gone
+    silent. It must not hold the exit beyond its one reply time-out, nor replace the stop (exit
+    128 + N) by its error: said as a warning, it labels the frames since the last good read
+    invalid. A real ``SIGINT`` as the period's read begins; the emulator's reply path cut (its
+    commands still act) as the stop path's read begins."""
+    from acquisition.guardian import StopSignal
+    from acquisition.l8121 import ERROR_POLL_MAX_S, L8121
+
+    reply_s = 0.3
+    shape = {"darks": 1, "flats": 1, "frames_per_step": 3, "steps": [0.15]}
+    p = protocol(tmp_path, scene_toml, dialect, link_s=0.002, timeout_s=reply_s, **shape)
+    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
+    dev = sim_devices(p, bench=bench)
+    model = dev.emulator
+    reads, armed = [], []
+    read = L8121.error_code_after_beam
+
+    def read_after_beam(self, *args, **kwargs):
+        if armed:
+            reads.append(time.monotonic())
+            if len(reads) == 1:  # the period's own read: the stop lands in it
+                signal.raise_signal(signal.SIGINT)
+            else:  # the stop path's: no reply comes
+                model.silence(True, execute=True)
+        return read(self, *args, **kwargs)
+
+    monkeypatch.setattr(L8121, "error_code_after_beam", read_after_beam)
+    hook, _ = _at_frames(model, {5: lambda: armed.append(True)})  # the step's last frame
+    with caplog.at_level(logging.WARNING, logger="acquisition"):
+        with pytest.raises(StopSignal) as info:
+            run(p, devices=dev, progress=False, on_phase=hook)
+    ended = time.monotonic()
+    res = info.value.result
+    assert len(reads) == 2 and res.tube_off is True and not model.xray_on, (reads, res)
+    # one reply time-out, and the rest of the stop's bookkeeping: far less than a second one more
+    assert ended - reads[1] < 3 * reply_s, ended - reads[1]
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any("SER" in m and "labelled invalid" in m for m in said), said
+    c = contents(p.output)
+    assert np.all(c["key"][2:] == ImageKey.INVALID) and len(c["key"]) == 5, c["key"]
+
+
 def test_a_b_unit_answering_sts_error_mid_series_stops_it_and_the_tube_is_not_called_off(
     tmp_path, scene_toml, bench, capsys
 ):
