@@ -143,9 +143,17 @@ def loads_checked(text, where="JSON", limit=MAX_CHARS):
     them back itself (``results.Results.from_json``)."""
     if text is not None and len(text) > limit:
         raise TooLong(f"{where} is {len(text)} characters long, past the {limit} radiokit reads")
-    deep = TooDeep(f"{where} nests deeper than {MAX_DEPTH} levels, past any JSON radiokit reads")
+    return within_depth(
+        json.loads, text, TooDeep(f"{where} nests deeper than {MAX_DEPTH} levels, past any JSON radiokit reads")
+    )
+
+
+def within_depth(parse, text, deep: Exception):
+    """``parse(text)`` (JSON's or TOML's), raising ``deep`` where the value nests past
+    :data:`MAX_DEPTH` levels: the parser's own RecursionError on the way there, or the value's
+    depth (:func:`too_deep`) after."""
     try:
-        value = json.loads(text)
+        value = parse(text)
     except RecursionError:
         raise deep from None
     if too_deep(value):

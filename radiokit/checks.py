@@ -157,18 +157,12 @@ def toml_loads(text: str) -> dict:
     parts (a tuple per prefix): refused unparsed past the depth (:func:`_long_dotted_key`)."""
     import tomllib
 
-    from radiokit._json import MAX_DEPTH, too_deep  # late: numpy, which this module does without
+    from radiokit._json import MAX_DEPTH, within_depth  # late: numpy, which this module does without
 
     deep = tomllib.TOMLDecodeError(f"nests deeper than {MAX_DEPTH} levels, past any TOML radiokit reads")
     if _long_dotted_key(MAX_DEPTH).search(text):
         raise deep
-    try:
-        value = tomllib.loads(text)
-    except RecursionError:
-        raise deep from None
-    if too_deep(value):
-        raise deep
-    return value
+    return within_depth(tomllib.loads, text, deep)
 
 
 @functools.cache

@@ -732,15 +732,13 @@ def test_a_stop_whose_signal_cuts_the_monitors_poll_short_first_still_reads_the_
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
 
 
-@pytest.mark.parametrize("dialect", ["A", "B"])
-def test_a_stop_landing_in_the_periods_last_poll_still_reads_the_error_code(tmp_path, scene_toml, bench, dialect):
-    """A stop can land in the main thread's own poll too: the one that vouches for a beam period's
-    frames just before its ``XOF`` (``_beam_off``: the beam checks, ``SER`` after the ``XOF``). The
-    poll recorded the stop as the beam monitor's error, the stop path took it for a beam fault,
-    and no ``SER`` was read after the stop's ``XOF``. A stop is no reading of the beam: the frames
-    since the last good poll are labelled invalid and ``SER`` read once the tube is off, as for a
-    stop anywhere else in the period. A trace function raises the signal (a real ``SIGINT``) as the
-    poll's ``SIN`` is about to be asked, between its exchanges."""
+def _period_stopped_where(tmp_path, scene_toml, bench, dialect, lands):
+    """A one-step series (3 frames) whose period reads ``SER`` only after its ``XOF``; a controller
+    code at the step's second frame, and from its last a trace function in the main thread that
+    raises a real ``SIGINT`` where ``lands(frame)``. Checks what every such stop keeps (the stop
+    raised, the tube confirmed off, no ``RST``, the period's frames labelled invalid since the last
+    good ``SER``, before ``XON``); returns the commands sent up to the landing and those since the
+    step's first frame."""
     from acquisition.guardian import StopSignal
     from acquisition.l8121 import ERROR_POLL_MAX_S
 
@@ -751,35 +749,51 @@ def test_a_stop_landing_in_the_periods_last_poll_still_reads_the_error_code(tmp_
     landed = []
 
     def in_main(frame, event, arg):
-        up = frame.f_back
-        if (
-            frame.f_code.co_name == "interlock_closed"
-            and up is not None
-            and up.f_code.co_name == "check"
-            and up.f_back is not None
-            and up.f_back.f_code.co_name == "confirm"
-        ):
+        if lands(frame):
             sys.settrace(None)
-            landed.append([e.command for e in model.log][-1])
+            landed.append([e.command for e in model.log])
             signal.raise_signal(signal.SIGINT)
         return None
 
-    # the step's second frame: the code; its last: the trace set for the period's last poll
     hook, seen = _at_frames(model, {4: lambda: model.controller_error(2), 5: lambda: sys.settrace(in_main)})
     try:
         with pytest.raises(StopSignal) as info:
             run(p, devices=dev, progress=False, on_phase=hook)
     finally:
         sys.settrace(None)
-    assert landed == [{"A": "SAR", "B": "SCU"}[dialect]], landed  # between the poll's beam reading and SIN
     res = info.value.result
     assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
-    after = [e.command for e in model.log[seen["n"] :]]
-    first = after.index("XOF")
-    assert "SER" in after[first:], after  # read once the tube is off, never before the XOF
     c = contents(p.output)
     assert res.frames_total == 2 + 3 and len(c["key"]) == 5
     assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
+    assert len(landed) == 1, landed
+    return landed[0], [e.command for e in model.log[seen["n"] :]]
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_stop_landing_in_the_periods_last_poll_still_reads_the_error_code(tmp_path, scene_toml, bench, dialect):
+    """A stop can land in the main thread's own poll too: the one that vouches for a beam period's
+    frames just before its ``XOF`` (``_beam_off``: the beam checks, ``SER`` after the ``XOF``). The
+    poll recorded the stop as the beam monitor's error, the stop path took it for a beam fault,
+    and no ``SER`` was read after the stop's ``XOF``. A stop is no reading of the beam: the frames
+    since the last good poll are labelled invalid and ``SER`` read once the tube is off, as for a
+    stop anywhere else in the period. A trace function raises the signal (a real ``SIGINT``) as the
+    poll's ``SIN`` is about to be asked, between its exchanges."""
+
+    def lands(frame):
+        up = frame.f_back
+        return (
+            frame.f_code.co_name == "interlock_closed"
+            and up is not None
+            and up.f_code.co_name == "check"
+            and up.f_back is not None
+            and up.f_back.f_code.co_name == "confirm"
+        )
+
+    sent, after = _period_stopped_where(tmp_path, scene_toml, bench, dialect, lands)
+    assert sent[-1] == {"A": "SAR", "B": "SCU"}[dialect], sent  # between the poll's beam reading and SIN
+    first = after.index("XOF")
+    assert "SER" in after[first:], after  # read once the tube is off, never before the XOF
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -790,37 +804,11 @@ def test_a_stop_landing_in_the_periods_error_code_read_reads_it_once_more(tmp_pa
     code that came up in the period left its frames valid. The stop path reads it once (the
     tube off, its own ``XOF`` not held back): the code labels the frames since the last good
     ``SER`` invalid. A trace function raises the signal (a real ``SIGINT``) as the read begins."""
-    from acquisition.guardian import StopSignal
-    from acquisition.l8121 import ERROR_POLL_MAX_S
-
-    p = protocol(tmp_path, scene_toml, dialect, link_s=0.002, darks=1, flats=1, frames_per_step=3, steps=[0.15])
-    p.source.limits["error_poll_s"] = ERROR_POLL_MAX_S
-    dev = sim_devices(p, bench=bench)
-    model = dev.emulator
-    landed = []
-
-    def in_main(frame, event, arg):
-        if frame.f_code.co_name == "error_code_after_beam":
-            sys.settrace(None)
-            landed.append([e.command for e in model.log][-2:])
-            signal.raise_signal(signal.SIGINT)
-        return None
-
-    # the step's second frame: the code; its last: the trace set for the period's SER after its XOF
-    hook, seen = _at_frames(model, {4: lambda: model.controller_error(2), 5: lambda: sys.settrace(in_main)})
-    try:
-        with pytest.raises(StopSignal) as info:
-            run(p, devices=dev, progress=False, on_phase=hook)
-    finally:
-        sys.settrace(None)
-    assert landed == [["XOF", "STS"]], landed  # the period's normal switch-off, confirmed, and no SER yet
-    res = info.value.result
-    assert res.tube_off is True and not model.xray_on and "RST" not in model.commands
-    after = [e.command for e in model.log[seen["n"] :]]
+    sent, after = _period_stopped_where(
+        tmp_path, scene_toml, bench, dialect, lambda frame: frame.f_code.co_name == "error_code_after_beam"
+    )
+    assert sent[-2:] == ["XOF", "STS"], sent  # the period's normal switch-off, confirmed, and no SER yet
     assert after.count("SER") == 1 and after.index("SER") > after.index("XOF"), after
-    c = contents(p.output)
-    assert res.frames_total == 2 + 3 and len(c["key"]) == 5
-    assert np.all(c["key"][2:] == ImageKey.INVALID), c["key"]  # since the last good SER (before XON)
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
