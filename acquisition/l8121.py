@@ -87,6 +87,7 @@ import math
 import re
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterable, Mapping
 from enum import IntEnum
 from pathlib import Path
@@ -700,7 +701,10 @@ def _toml_section(source: str | Path, section: str) -> dict:
     # a one-line string is a file when it has no "=" or names an existing one (runs/kv=60/source.toml)
     if isinstance(source, Path) or ("\n" not in source and ("=" not in source or names_file(source))):
         text = Path(source).read_text(encoding="utf-8")
-    table: Any = toml_loads(text)
+    try:
+        table: Any = toml_loads(text)
+    except tomllib.TOMLDecodeError as exc:  # names no file: this reader's refusal does (s52)
+        raise ValueError(f"{source if text is not source else 'TOML text'}: not TOML: {exc}") from None
     for part in section.split(".") if section else ():
         if not isinstance(table, dict) or part not in table:
             raise ValueError(f"{source if text is not source else 'TOML text'}: no [{section}] table")

@@ -3091,6 +3091,25 @@ def test_a_rate_l8121_md_does_not_list_is_used_with_a_warning_and_reaches_the_un
     assert "not a rate" not in caplog.text  # the listed rates without a word
 
 
+def test_a_configuration_that_is_not_toml_is_refused_naming_its_file(tmp_path):
+    """A lab's source table that is not TOML (or nests past radiokit's depth): one ValueError naming
+    the file (or saying it was text) and what is wrong -- it was tomllib's TOMLDecodeError, which
+    named no file, the one reader here that let it through."""
+    import tomllib
+
+    path = tmp_path / "lab.toml"
+    path.write_text('[source]\nurl = "/dev/ttyUSB0"\nkv_max = \n')
+    for call in (SourceConfig.from_toml, lambda p: L8121.from_config(p, connect=False)):
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: not TOML: ") as info:
+            call(path)
+        assert not isinstance(info.value, tomllib.TOMLDecodeError)
+    path.write_text("[source]\nx = " + "[" * 40 + "]" * 40 + "\n")
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: not TOML: nests deeper than 32 levels"):
+        SourceConfig.from_toml(path)
+    with pytest.raises(ValueError, match=r"^TOML text: not TOML: "):
+        SourceConfig.from_toml("[source]\nkv_max = \n")
+
+
 def test_config_from_toml_and_dict(tmp_path):
     path = tmp_path / "lab.toml"
     path.write_text(
