@@ -2930,6 +2930,27 @@ def test_a_damaged_tifffile_shape_description_is_not_read_and_the_pages_are(desc
     assert res.returncode == 0 and "Traceback" not in res.stderr and "3 x 4 rows x 5 cols" in res.stdout, res
 
 
+@pytest.mark.parametrize("past", ["deep", "long"])
+def test_a_tifffile_shape_description_past_radiokit_s_rule_says_its_frame_layout_is_ignored(past, tmp_path):
+    """Review of s52: a tifffile shape description (its shape and axes say which pages are
+    frames) past radiokit's depth or length is not read, and the pages read as a plain stack;
+    the only warning said "kept as text", not that the frame layout it gave was ignored. One
+    line, naming the file. Shape (2, 3, 4, 5), axes "TZYX": the layout the description gives."""
+    from radiokit._json import MAX_CHARS
+
+    path = tmp_path / "shaped.tif"
+    frames = np.arange(6 * 4 * 5, dtype=np.uint16).reshape(6, 4, 5)
+    tail = "[" * 40 + "]" * 40 if past == "deep" else "[" + "0," * (MAX_CHARS // 2) + "0]"
+    description = '{"shape": [2, 3, 4, 5], "axes": "TZYX", "x": ' + tail + "}"
+    tifffile.imwrite(path, frames, description=description, metadata=None, photometric="minisblack")
+    with pytest.warns(UserWarning) as caught:
+        f = read(path)
+    np.testing.assert_array_equal(f.data, frames)
+    (line,) = [str(w.message) for w in caught if "ImageDescription" in str(w.message)]
+    assert "\n" not in line and line.startswith(f"{path}: "), line
+    assert "frame layout (shape [2, 3, 4, 5]) it gives is ignored" in line and "plain stack of its 6 pages" in line
+
+
 @pytest.mark.parametrize(
     "text",
     [

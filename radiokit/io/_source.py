@@ -977,9 +977,26 @@ class FrameSource:
                 # caller's json.dumps of the meta recursed past Python's limit)
                 self.meta["description"] = strict_json.loads_record(desc, "its ImageDescription's JSON")
             except strict_json.Refused as exc:
-                warnings.warn(f"{shown(self.path)}: {exc}: kept as text", UserWarning, stacklevel=4)
+                warnings.warn(
+                    f"{shown(self.path)}: {exc}: {self._layout_ignored(first, desc)}kept as text",
+                    UserWarning,
+                    stacklevel=4,
+                )
             except ValueError:  # free text, however it looks
                 pass
+
+    def _layout_ignored(self, first, desc: str) -> str:
+        """What a refused description's frame layout came to, where it is tifffile's shape
+        description ("" where not): its shape and axes steer which pages are frames, and were
+        ignored. Why said: "kept as text" alone did not tell that the frames were read otherwise
+        than the file's writer laid them out (review of s52). The shape is named as tifffile
+        writes it, first (a bounded match: the text is past what radiokit parses)."""
+        if first.shaped_description != desc:
+            return ""
+        found = re.match(r'\{"shape": \[([0-9, ]{1,200})\]', desc)
+        shape = f" [{found.group(1)}]" if found else ""
+        pages = f"{self.n} page{'s' * (self.n != 1)}"
+        return f"the frame layout (shape{shape}) it gives is ignored, read as a plain stack of its {pages}; "
 
     def _tiff_pixel_size(self, first) -> dict:
         """``x_pixel_size`` / ``y_pixel_size`` (metres) where the file states a length per pixel:
