@@ -2991,6 +2991,37 @@ def test_a_micro_manager_summary_nested_past_radiokit_s_depth_is_refused_in_one_
     one_line_error(run_cli("info", path), str(path), "Micro-Manager summary nests deeper than 32 levels")
 
 
+@pytest.mark.parametrize("past", ["deep", "long"])
+def test_a_micro_manager_summary_past_radiokit_s_rule_is_refused_alike_where_read_alone(past, tmp_path):
+    """Review of s52: a Micro-Manager summary steers which planes are frames (and which files are
+    the set's); past radiokit's rule it is refused naming the file, as one nested too deep was.
+    One longer than radiokit._json.MAX_CHARS was parsed (tifffile's json.loads) on a read, and
+    silently nothing where radiokit reads the summary alone (``_read_summary``: a file whose index
+    map declares more than it holds, its set's files listed for an output's check). Both the same
+    line, in both places."""
+    import struct
+
+    from radiokit._json import MAX_CHARS
+    from radiokit.io._ome import mmstack_set_files
+    from tests.test_io_formats import _frames, _mmstack_file
+
+    tail = "[" * 40 + "]" * 40 if past == "deep" else "[" + "0," * (MAX_CHARS // 2) + "0]"
+    summary = '{"MicroManagerVersion": "2.0.0", "Frames": 2, "Channels": 1, "Slices": 1, "x": ' + tail + "}"
+    said = "nests deeper than 32 levels" if past == "deep" else f"is {len(summary)} characters long, past the"
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    real_dumps = json.dumps
+    with pytest.MonkeyPatch.context() as m:  # the helper writes the summary json.dumps gives it
+        m.setattr(json, "dumps", lambda v, *a, **k: summary if "MicroManagerVersion" in v else real_dumps(v, *a, **k))
+        _mmstack_file(path, _frames(2), 0, 2)
+    _refused(path, lambda: read(path), f"its Micro-Manager summary {said}", "not read")
+    out = bytearray(path.read_bytes())
+    _, index_at, *_ = struct.unpack_from("<8I", out, 8)
+    struct.pack_into("<I", out, index_at + 4, 4 * 10**8)  # the index map declares more than the file
+    path.write_bytes(bytes(out))
+    with tifffile.TiffFile(path) as tif:
+        _refused(path, lambda: mmstack_set_files(tif), f"its Micro-Manager summary {said}", "not read")
+
+
 def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_a_warning(tmp_path):
     """s52: a 12 MB description of 10**6 keys was parsed at every open, 8 times in one
     ``calibrate`` of two 2-frame files. JSON in a file's metadata longer than
