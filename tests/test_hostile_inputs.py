@@ -3022,6 +3022,27 @@ def test_a_micro_manager_summary_past_radiokit_s_rule_is_refused_alike_where_rea
         _refused(path, lambda: mmstack_set_files(tif), f"its Micro-Manager summary {said}", "not read")
 
 
+def test_calibrate_parses_each_file_s_json_description_once(tmp_path, monkeypatch):
+    """Review of s52: a description just inside radiokit's length bound (4 MiB, ~0.6 s a parse)
+    was parsed twice per file by ``calibrate``: once where every file is judged from its header
+    (radiokit.io.judge_all), which no judge reads it for, and again where its frames are read.
+    Once per file: the frames' open. (The parses are counted with radiokit's own parser wrapped.)"""
+    import radiokit._json as strict_json
+
+    text = '{"domain": "counts", "k": [' + "0," * 500 + "0]}"
+    rng = np.random.default_rng(5)
+    for name, level in (("dark.tif", 100), ("flat.tif", 3000)):
+        frames = rng.poisson(level, (2, 16, 16)).astype(np.uint16)
+        tifffile.imwrite(tmp_path / name, frames, description=text, metadata=None, photometric="minisblack")
+    parsed, real = [], strict_json.loads_record
+    monkeypatch.setattr(strict_json, "loads_record", lambda t, *a, **k: parsed.append(t == text) or real(t, *a, **k))
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5"
+    )
+    assert res.returncode == 0, res.stderr
+    assert sum(parsed) == 2, parsed
+
+
 def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_a_warning(tmp_path):
     """s52: a 12 MB description of 10**6 keys was parsed at every open, 8 times in one
     ``calibrate`` of two 2-frame files. JSON in a file's metadata longer than
