@@ -2930,6 +2930,27 @@ def test_a_damaged_tifffile_shape_description_is_not_read_and_the_pages_are(desc
     assert res.returncode == 0 and "Traceback" not in res.stderr and "3 x 4 rows x 5 cols" in res.stdout, res
 
 
+@pytest.mark.parametrize("past", ["deep", "long"])
+def test_a_tifffile_shape_description_past_radiokit_s_rule_says_its_frame_layout_is_ignored(past, tmp_path):
+    """Review of s52: a tifffile shape description (its shape and axes say which pages are
+    frames) past radiokit's depth or length is not read, and the pages read as a plain stack;
+    the only warning said "kept as text", not that the frame layout it gave was ignored. One
+    line, naming the file. Shape (2, 3, 4, 5), axes "TZYX": the layout the description gives."""
+    from radiokit._json import MAX_CHARS
+
+    path = tmp_path / "shaped.tif"
+    frames = np.arange(6 * 4 * 5, dtype=np.uint16).reshape(6, 4, 5)
+    tail = "[" * 40 + "]" * 40 if past == "deep" else "[" + "0," * (MAX_CHARS // 2) + "0]"
+    description = '{"shape": [2, 3, 4, 5], "axes": "TZYX", "x": ' + tail + "}"
+    tifffile.imwrite(path, frames, description=description, metadata=None, photometric="minisblack")
+    with pytest.warns(UserWarning) as caught:
+        f = read(path)
+    np.testing.assert_array_equal(f.data, frames)
+    (line,) = [str(w.message) for w in caught if "ImageDescription" in str(w.message)]
+    assert "\n" not in line and line.startswith(f"{path}: "), line
+    assert "frame layout (shape [2, 3, 4, 5]) it gives is ignored" in line and "plain stack of its 6 pages" in line
+
+
 @pytest.mark.parametrize(
     "text",
     [
@@ -2968,6 +2989,58 @@ def test_a_micro_manager_summary_nested_past_radiokit_s_depth_is_refused_in_one_
         _mmstack_file(path, _frames(2), 0, 2)
     _refused(path, lambda: read(path), "Micro-Manager summary nests deeper than 32 levels")
     one_line_error(run_cli("info", path), str(path), "Micro-Manager summary nests deeper than 32 levels")
+
+
+@pytest.mark.parametrize("past", ["deep", "long"])
+def test_a_micro_manager_summary_past_radiokit_s_rule_is_refused_alike_where_read_alone(past, tmp_path):
+    """Review of s52: a Micro-Manager summary steers which planes are frames (and which files are
+    the set's); past radiokit's rule it is refused naming the file, as one nested too deep was.
+    One longer than radiokit._json.MAX_CHARS was parsed (tifffile's json.loads) on a read, and
+    silently nothing where radiokit reads the summary alone (``_read_summary``: a file whose index
+    map declares more than it holds, its set's files listed for an output's check). Both the same
+    line, in both places."""
+    import struct
+
+    from radiokit._json import MAX_CHARS
+    from radiokit.io._ome import mmstack_set_files
+    from tests.test_io_formats import _frames, _mmstack_file
+
+    tail = "[" * 40 + "]" * 40 if past == "deep" else "[" + "0," * (MAX_CHARS // 2) + "0]"
+    summary = '{"MicroManagerVersion": "2.0.0", "Frames": 2, "Channels": 1, "Slices": 1, "x": ' + tail + "}"
+    said = "nests deeper than 32 levels" if past == "deep" else f"is {len(summary)} characters long, past the"
+    path = tmp_path / "exp_MMStack_Pos0.ome.tif"
+    real_dumps = json.dumps
+    with pytest.MonkeyPatch.context() as m:  # the helper writes the summary json.dumps gives it
+        m.setattr(json, "dumps", lambda v, *a, **k: summary if "MicroManagerVersion" in v else real_dumps(v, *a, **k))
+        _mmstack_file(path, _frames(2), 0, 2)
+    _refused(path, lambda: read(path), f"its Micro-Manager summary {said}", "not read")
+    out = bytearray(path.read_bytes())
+    _, index_at, *_ = struct.unpack_from("<8I", out, 8)
+    struct.pack_into("<I", out, index_at + 4, 4 * 10**8)  # the index map declares more than the file
+    path.write_bytes(bytes(out))
+    with tifffile.TiffFile(path) as tif:
+        _refused(path, lambda: mmstack_set_files(tif), f"its Micro-Manager summary {said}", "not read")
+
+
+def test_calibrate_parses_each_file_s_json_description_once(tmp_path, monkeypatch):
+    """Review of s52: a description just inside radiokit's length bound (4 MiB, ~0.6 s a parse)
+    was parsed twice per file by ``calibrate``: once where every file is judged from its header
+    (radiokit.io.judge_all), which no judge reads it for, and again where its frames are read.
+    Once per file: the frames' open. (The parses are counted with radiokit's own parser wrapped.)"""
+    import radiokit._json as strict_json
+
+    text = '{"domain": "counts", "k": [' + "0," * 500 + "0]}"
+    rng = np.random.default_rng(5)
+    for name, level in (("dark.tif", 100), ("flat.tif", 3000)):
+        frames = rng.poisson(level, (2, 16, 16)).astype(np.uint16)
+        tifffile.imwrite(tmp_path / name, frames, description=text, metadata=None, photometric="minisblack")
+    parsed, real = [], strict_json.loads_record
+    monkeypatch.setattr(strict_json, "loads_record", lambda t, *a, **k: parsed.append(t == text) or real(t, *a, **k))
+    res = run_cli(
+        "calibrate", "--dark", tmp_path / "dark.tif", "--flat", tmp_path / "flat.tif", "-o", tmp_path / "c.h5"
+    )
+    assert res.returncode == 0, res.stderr
+    assert sum(parsed) == 2, parsed
 
 
 def test_a_tiff_description_of_json_past_radiokit_s_length_is_kept_as_text_with_a_warning(tmp_path):

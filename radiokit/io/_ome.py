@@ -234,6 +234,9 @@ def mmstack_split(tif, path=None, notes: list | None = None) -> list | None:
     return pages
 
 
+_SUMMARY = "its Micro-Manager summary"  # as its refusals name it
+
+
 def micromanager_metadata(tif, path=None, strict=True) -> dict:
     """``tif.micromanager_metadata`` (``{}`` where none), its index map's declared size checked
     against the file's bytes first (:func:`_read_index_map`). Why: tifffile reads the declared
@@ -242,10 +245,12 @@ def micromanager_metadata(tif, path=None, strict=True) -> dict:
     name = tif.filehandle.path
     shown_as = Path(path or name or "")
     if name and os.path.isfile(name):
-        _check_block_lengths(name, path)
+        summary_bytes = _check_block_lengths(name, path)
         index, problem = _read_index_map(name)
         if index is None and problem.startswith("declares") and not strict:  # its summary alone
-            return {"Summary": _read_summary(name), "IndexMap": None}
+            return {"Summary": _read_summary(name, path), "IndexMap": None}
+        if summary_bytes > strict_json.MAX_CHARS:  # past radiokit's length, refused as below (its characters)
+            _read_summary(name, path)
         if index is None and problem.startswith("declares"):
             raise FormatError(
                 shown_as,
@@ -255,7 +260,7 @@ def micromanager_metadata(tif, path=None, strict=True) -> dict:
     # its summary steers which planes are frames, in what order: past radiokit's depth
     # (radiokit._json), refused; tifffile's own json.loads of one past Python's reach ended
     # "cannot be read as tiff: maximum recursion depth exceeded while decoding a JSON array" (s52)
-    deep = strict_json.TooDeep(f"its Micro-Manager summary nests deeper than {strict_json.MAX_DEPTH} levels")
+    deep = strict_json.TooDeep(f"{_SUMMARY} nests deeper than {strict_json.MAX_DEPTH} levels")
     try:
         meta = tif.micromanager_metadata or {}
         if strict_json.too_deep(meta.get("Summary")):
@@ -267,17 +272,18 @@ def micromanager_metadata(tif, path=None, strict=True) -> dict:
     return meta
 
 
-def _check_block_lengths(name: str, path=None) -> None:
+def _check_block_lengths(name: str, path=None) -> int:
     """Refuse a Micro-Manager file whose header gives its summary, display settings or comments a
     length beyond the file's bytes: tifffile reads each in one read of that length (review
-    s40rr4: 4 GB asked of a 5 KB file, and where memory is not overcommitted the read failed)."""
+    s40rr4: 4 GB asked of a 5 KB file, and where memory is not overcommitted the read failed).
+    Returns the summary's length in bytes (0 where the header gives none)."""
     import struct
 
     with open(name, "rb") as fh:
         head = fh.read(40)
         order = {b"II": "<", b"MM": ">"}.get(head[:2])
         if order is None or len(head) < 40:
-            return
+            return 0
         _, _, display_magic, display_at, comments_magic, comments_at, summary_magic, summary_length = (
             struct.unpack_from(order + "8I", head, 8)
         )
@@ -298,11 +304,15 @@ def _check_block_lengths(name: str, path=None) -> None:
                 Path(path or name),
                 f"its Micro-Manager header gives its {what} {length} bytes, more than the file's {size}: corrupt",
             )
+    return summary_length if summary_magic == 2355492 else 0
 
 
-def _read_summary(name: str) -> dict | None:
+def _read_summary(name: str, path=None) -> dict | None:
     """The Micro-Manager summary of the file ``name`` (its JSON at byte 40, as tifffile reads it),
-    without its index map; None where it has none that reads."""
+    without its index map; None where it has none that reads. Past radiokit's depth or length
+    (radiokit._json), refused naming the file (``path`` where given), as
+    :func:`micromanager_metadata` refuses one too deep: a summary steers which planes are frames
+    and which files are the set's (review of s52: one past the length was silently none)."""
     import struct
 
     try:
@@ -312,9 +322,9 @@ def _read_summary(name: str) -> dict | None:
             magic, length = struct.unpack_from(order + "II", head, 32)
             if magic != 2355492 or length > os.fstat(fh.fileno()).st_size:
                 return None
-            summary = strict_json.loads_record(
-                fh.read(length).decode("utf-8", "replace")
-            )  # a ValueError past its depth
+            summary = strict_json.loads_record(fh.read(length).decode("utf-8", "replace"), _SUMMARY)
+    except strict_json.Refused as exc:
+        raise FormatError(Path(path or name), f"{exc}: not read") from None
     except (OSError, ValueError, TypeError, struct.error):
         return None
     return summary if isinstance(summary, dict) else None

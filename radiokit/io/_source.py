@@ -242,6 +242,7 @@ class FrameSource:
         allow_external=False,
         budget=None,
         narrow_frames=False,
+        describe=True,
         **hints,
     ):
         if not isinstance(path, (str, os.PathLike)):  # pathlib's own words named no argument
@@ -252,6 +253,9 @@ class FrameSource:
         self._reading_all = False  # read_all: the proportion judged over every frame, not each
         self._allow_external = bool(allow_external)
         self._budget = budget
+        # False: a TIFF's JSON ImageDescription is not parsed into meta["description"] (judge_all's
+        # opens: no judge reads it, and one near radiokit's length bound is ~0.6 s a parse)
+        self._describe = bool(describe)
         self.format = self._format_for(format, dataset, hints)
         dataset = dataset or (hdf5_dataset if self.format == "hdf5" else None)  # (other formats: ignored)
         self._fh = self._tif = self._h5 = None
@@ -970,16 +974,33 @@ class FrameSource:
         self._tiff_max_sample_bits(first)
         self._tiff_stacked()
         desc = tags.get("ImageDescription")
-        if isinstance(desc, str) and desc.startswith("{"):
+        if self._describe and isinstance(desc, str) and desc.startswith("{"):
             try:
                 # radiokit's nulled inf/NaN back; past radiokit's depth or length, said and kept as text:
                 # it steers nothing but what is shown of it (s52: 900 levels loaded, and every
                 # caller's json.dumps of the meta recursed past Python's limit)
                 self.meta["description"] = strict_json.loads_record(desc, "its ImageDescription's JSON")
             except strict_json.Refused as exc:
-                warnings.warn(f"{shown(self.path)}: {exc}: kept as text", UserWarning, stacklevel=4)
+                warnings.warn(
+                    f"{shown(self.path)}: {exc}: {self._layout_ignored(first, desc)}kept as text",
+                    UserWarning,
+                    stacklevel=4,
+                )
             except ValueError:  # free text, however it looks
                 pass
+
+    def _layout_ignored(self, first, desc: str) -> str:
+        """What a refused description's frame layout came to, where it is tifffile's shape
+        description ("" where not): its shape and axes steer which pages are frames, and were
+        ignored. Why said: "kept as text" alone did not tell that the frames were read otherwise
+        than the file's writer laid them out (review of s52). The shape is named as tifffile
+        writes it, first (a bounded match: the text is past what radiokit parses)."""
+        if first.shaped_description != desc:
+            return ""
+        found = re.match(r'\{"shape": \[([0-9, ]{1,200})\]', desc)
+        shape = f" [{found.group(1)}]" if found else ""
+        pages = f"{self.n} page{'s' * (self.n != 1)}"
+        return f"the frame layout (shape{shape}) it gives is ignored, read as a plain stack of its {pages}; "
 
     def _tiff_pixel_size(self, first) -> dict:
         """``x_pixel_size`` / ``y_pixel_size`` (metres) where the file states a length per pixel:
@@ -2021,11 +2042,13 @@ def judge_all(paths, /, check, **hints) -> None:
     own error, several an :class:`radiokit.errors.InputErrors` holding each, in the order given.
     Why: a command of several files named only the first bad one, and the user met the next one
     only after fixing it; and held open together, 300 single-frame TIFFs passed macOS's default
-    limit of 256 open files, every file after the 250th named "Too many open files"."""
+    limit of 256 open files, every file after the 250th named "Too many open files". A TIFF's
+    JSON description is not parsed here (``meta`` has no "description"): the frames' open parses
+    it, once per file (review of s52: a 4 MiB one, ~0.6 s a parse, was parsed at both opens)."""
     errors = []
     for path in paths:
         try:
-            with open_frames(path, **hints) as src:
+            with open_frames(path, describe=False, **hints) as src:
                 check(src)
         except (RadiokitError, ValueError, OSError) as exc:
             errors.append(exc)
