@@ -420,17 +420,29 @@ def _write_no_sigpipe(fd: int, data: bytes) -> int:
 
 #: How often a close looks again whether the port's output has drained (s): bytes leave in ms.
 _CLOSE_POLL_S = 0.01
+#: The shortest look again after a command's bytes (s): about one byte's time at 9600 baud.
+_DRAIN_POLL_MIN_S = 0.001
 
 
-def _unsent(ser) -> int:
-    """The bytes the local port ``ser`` holds unsent in its output queue (the kernel's); 0 where it
-    cannot say (a link that is gone) or for a URL (``loop://`` counts what is not read back yet)."""
+def _queued(ser) -> int | None:
+    """The bytes the local port ``ser`` holds unsent in its output queue (the kernel's); None where
+    it cannot say (a link that is gone) or for a URL (``loop://`` counts what is not read back yet)."""
     if not isinstance(getattr(ser, "fd", None), int):
-        return 0
+        return None
     try:
         return int(ser.out_waiting or 0)
     except (serial.SerialException, OSError, ValueError, AttributeError, NotImplementedError, TypeError):
-        return 0
+        return None
+
+
+def _unsent(ser) -> int:
+    """:func:`_queued`, 0 where it cannot say."""
+    return _queued(ser) or 0
+
+
+class _DrainTimedOut(serial.SerialTimeoutException):
+    """A command written whole whose bytes did not leave the port within the write time-out (its
+    output not draining): unlike a write time-out, it may still reach the controller."""
 
 
 class SerialTransport:
@@ -705,7 +717,7 @@ class SerialTransport:
         Why: Linux's last close of a serial port waits for its unsent output up to the port's
         closing_wait, 30 s by default: an adapter whose output had stopped (wedged) held a
         command that close long after the tube's state was said, its stop signals ignored by
-        then. Every command is drained as it is sent (``ser.flush()``), so bytes left now are a
+        then. Every command is drained as it is sent (:meth:`_drain`), so bytes left now are a
         wedged port's, not a command's still leaving."""
         deadline = time.monotonic() + self.write_timeout_s
         while _unsent(ser) and time.monotonic() < deadline:
@@ -785,6 +797,12 @@ class SerialTransport:
                     return self._exchange(command, payload)
                 except _LINK_ERRORS as exc:
                     # Write time-outs are a device that does not take data, not a lost link.
+                    if isinstance(exc, _DrainTimedOut):
+                        # not WriteTimedOut, which says nothing went: a switch-off reads this XOF as sent
+                        raise DeviceError(
+                            f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
+                            "but the port's output is not draining (it may still reach the controller)"
+                        ) from exc
                     if isinstance(exc, serial.SerialTimeoutException):
                         raise WriteTimedOut(
                             f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
@@ -846,8 +864,16 @@ class SerialTransport:
         try:
             self._undrained.append(command.split(" ", 1)[0])
             self._write(self._serial, command, self._payload(command))
-            self._serial.flush()
+            self._drain(self._serial)
             self._undrained.clear()
+        except _DrainTimedOut:
+            self.log.warning(
+                "%s: %s written to a device that did not answer the identity check, but the port's output "
+                "is not draining (not confirmed; left for the port to send as it closes)",
+                self.url,
+                command,
+            )
+            return
         except _LINK_ERRORS as exc:
             self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
             return
@@ -883,7 +909,7 @@ class SerialTransport:
             # its bytes are out: owed its reply from here, even if the drain below fails (the
             # controller may have the command; its reply then comes on the reopened port)
             written = True
-            ser.flush()
+            self._drain(ser)
             self._undrained.clear()  # the drain waits for the whole output: every byte has left
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
@@ -906,7 +932,7 @@ class SerialTransport:
 
     def _write(self, ser, command: str, payload: bytes) -> None:
         """Send ``payload``, timed out only while bytes are left unsent (the caller drains the
-        output, ``ser.flush()``, once the command counts as written).
+        output, :meth:`_drain`, once the command counts as written).
 
         pyserial checks its write time-out after ``os.write`` has returned, so a process stalled
         right there (a loaded machine, the GIL held by another thread past ``write_timeout_s``)
@@ -936,6 +962,25 @@ class SerialTransport:
                     sent = len(payload) - len(view)
                     raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
                 select.select([], [fd], [], min(left, 0.05))
+
+    def _drain(self, ser) -> None:
+        """Wait until the command just written has left the port, at most ``write_timeout_s``
+        (:class:`_DrainTimedOut` past it; its bytes stay queued, :meth:`close` decides on them).
+
+        Why: ``ser.flush()`` (tcdrain) has no time limit: on a wedged adapter an exchange waited
+        forever, the switch-off's ``XOF`` too, its stop signals held. A local port's queue is
+        polled instead, as :meth:`_await_output` does; a link whose queue cannot be read (a URL)
+        keeps ``ser.flush()``, whose wait is bounded by its own time-outs."""
+        if _queued(ser) is None:
+            ser.flush()
+            return
+        deadline = time.monotonic() + self.write_timeout_s
+        while left := _unsent(ser):
+            wait = deadline - time.monotonic()
+            if wait <= 0:
+                raise _DrainTimedOut(f"Drain timeout ({left} bytes still unsent)")
+            # about the bytes' time on the wire, a few ms at 9600 baud: a command goes out at once
+            time.sleep(min(wait, _CLOSE_POLL_S, max(_DRAIN_POLL_MIN_S, 10 * left / self.baudrate)))
 
     def _flush_late(self, ser) -> None:
         """Discard what has arrived before a command is sent (nothing is owed to it yet): each

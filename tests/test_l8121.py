@@ -1656,21 +1656,29 @@ def test_a_command_whose_drain_fails_after_its_bytes_went_out_is_owed_its_reply(
     written only once the drain returned, so it was not owed its reply, and its late answer, on
     the reopened port, was read as the reconnect check's (B: "not trusted"). Now it is owed from
     the moment its bytes are out. The failing drain is a stand-in (tcdrain cannot be made to fail
-    on a pty); the port, the emulator and the reconnect are real."""
+    on a pty): the port's queue unreadable (TIOCOUTQ's EIO), then tcdrain's termios.error, as on a
+    port gone; the port, the emulator and the reconnect are real."""
     import termios
+
+    class _Glitch:
+        def __init__(self, ser):
+            self._ser = ser
+
+        def __getattr__(self, name):
+            return getattr(self._ser, name)
+
+        @property
+        def out_waiting(self) -> int:
+            raise OSError(5, "Input/output error")
+
+        def flush(self) -> None:
+            self._ser.flush()  # the bytes are out
+            raise termios.error(5, "Input/output error")
 
     model, server = warm
     caplog.set_level(logging.DEBUG, logger="acquisition.transport")
     with driver(server, dialect) as src:
-        ser = src._transport._serial
-        drain = ser.flush
-
-        def failing_drain():
-            drain()
-            ser.flush = drain
-            raise termios.error(5, "Input/output error")
-
-        ser.flush = failing_drain
+        src._transport._serial = _Glitch(src._transport._serial)  # the reconnect opens a real port again
         model.hold_once("SIN")  # its reply comes late, on the reopened port
         n = len(model.log)
         assert src.interlock_closed() is True
@@ -5507,11 +5515,20 @@ def test_a_stop_as_source_off_builds_its_driver_still_switches_off(dialect, monk
 
 
 class _DrainCutShort(_WedgedOutput):
-    """:class:`_WedgedOutput` whose drain (``flush()``, tcdrain) a stop cuts short: the command's
-    bytes are written (to the real pty) but reported unsent, as on a wedged adapter."""
+    """:class:`_WedgedOutput` whose drain a stop cuts short: the command's bytes are written (to the
+    real pty) but reported unsent, as on a wedged adapter, and the stop lands as the drain looks at
+    the port's queue (its first look, the one each exchange's drain makes)."""
 
-    def flush(self) -> None:
-        raise KeyboardInterrupt("SIGTERM")  # a stop arriving while the drain waits
+    def __init__(self, ser, unsent: int, wait_s: float):
+        super().__init__(ser, unsent, wait_s)
+        self.stop = True
+
+    @property
+    def out_waiting(self) -> int:
+        if self.stop:
+            self.stop = False
+            raise KeyboardInterrupt("SIGTERM")  # a stop arriving while the drain waits
+        return self.unsent
 
 
 @pytest.mark.parametrize("command", ["XOF", "STS"])
@@ -5543,3 +5560,113 @@ def test_closing_a_port_keeps_an_undrained_switch_off_for_the_port_to_send(comma
         assert wedged.unsent == 4 and "XOF" in said[0], said  # left for the port's close to send
     else:
         assert wedged.unsent == 0 and "discarded" in said[0], said
+
+
+class _NeverDrains(_WedgedOutput):
+    """:class:`_WedgedOutput` whose drain (``flush()``, tcdrain) blocks until the test releases it,
+    as tcdrain does on a wedged adapter: no time limit. A fake, as there: a pseudo-terminal never
+    holds output back. The command's bytes do reach the real pty (the emulator may answer them)."""
+
+    def __init__(self, ser, unsent: int, wait_s: float):
+        super().__init__(ser, unsent, wait_s)
+        self.released = threading.Event()
+
+    def flush(self) -> None:
+        self.released.wait()
+
+
+def _ended_within(call, limit_s: float):
+    """Run ``call`` in a thread and return (what it raised, how long it took); fails if it has not
+    ended after ``limit_s``, so that a drain without a time limit fails the test, never hangs it."""
+    out: dict = {}
+
+    def run():
+        t0 = time.monotonic()
+        try:
+            call()
+        except BaseException as exc:  # the outcome looked at by the test
+            out["raised"] = exc
+        out["took"] = time.monotonic() - t0
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(limit_s)
+    assert not thread.is_alive(), f"still waiting after {limit_s} s"
+    return out.get("raised"), out["took"]
+
+
+@pytest.mark.parametrize("command", ["XOF", "STS"])
+def test_an_exchange_whose_output_does_not_drain_ends_after_the_write_time_out(command):
+    """Each command's drain (``ser.flush()``, tcdrain) had no time limit: on a wedged adapter an
+    exchange -- the switch-off's XOF too, its stop signals held -- waited forever (Ctrl-C printed
+    only "please wait"). The drain now waits ``write_timeout_s`` at most and raises a link error
+    naming the command and the time-out; not WriteTimedOut (that type says nothing went: the
+    bytes were written, may still leave, and the switch-off reads an XOF as sent). Its reply is
+    owed: the port un-wedged, the next command reads its own reply."""
+    write_timeout_s = 0.1
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, timeout_s=0.3, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        try:
+            assert link.query("STS") == "STS 2"
+            real = link._serial
+            link._serial = wedged = _NeverDrains(real, unsent=4, wait_s=0.0)
+            try:
+                raised, took = _ended_within(lambda: link.query(command), write_timeout_s + 1.0)
+            finally:
+                wedged.released.set()
+            assert write_timeout_s <= took < write_timeout_s + 0.5, took
+            assert isinstance(raised, DeviceError) and not isinstance(raised, WriteTimedOut), repr(raised)
+            said = str(raised)
+            assert server.url in said and f"{command}: write timed out after 0.1 s" in said, said
+            assert "may still reach the controller" in said, said
+            link._serial = real
+            assert link.query("TYP") == "TYP L8121-01"
+        finally:
+            link.close()
+
+
+def test_a_switch_off_on_a_port_whose_output_does_not_drain_ends_and_says_so(warm, dialect):
+    """off() on a wedged adapter: its XOF's drain waited forever, Ctrl-C held ("please wait").
+    Each drain now ends after write_timeout_s: the switch-off ends within its own bound (its
+    exchanges' write time-outs and its confirmation window) unconfirmed, and says so."""
+    model, server = warm
+    write_timeout_s = 0.1
+    with driver(server, dialect, off_confirm_s=0.2, off_attempts=1) as src:
+        src.on(60, 250)
+        transport = src._transport
+        transport.write_timeout_s = write_timeout_s
+        real = transport._serial
+        transport._serial = wedged = _NeverDrains(real, unsent=4, wait_s=0.0)
+        # XOF, STS, and B's operate-switch reading: each drain one write time-out, then the window
+        bound = 3 * (write_timeout_s + FAST["min_interval_s"]) + src.config.off_confirm_s + 0.5
+        try:
+            raised, took = _ended_within(src.off, bound + 1.0)
+        finally:
+            wedged.released.set()
+        assert took < bound, took
+        assert isinstance(raised, DeviceError) and "could not confirm X-rays off" in str(raised), repr(raised)
+        assert "write timed out" in str(raised), str(raised)
+        transport._serial = real
+        src.off()  # the port un-wedged: confirmed
+
+
+def test_a_blind_switch_off_whose_output_does_not_drain_ends_and_is_kept_for_the_close(caplog):
+    """The XOF a reconnect writes blind to a unit that did not answer its check was drained without
+    a time limit too. On a wedged port it now ends after write_timeout_s, says so, and is left
+    queued: the close keeps it for the port to send (review s52rvacq)."""
+    write_timeout_s = 0.1
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        real = link._serial
+        link._serial = wedged = _NeverDrains(real, unsent=4, wait_s=0.0)
+        try:
+            with caplog.at_level(logging.WARNING, logger="acquisition.transport"):
+                raised, took = _ended_within(lambda: link._send_blind("XOF"), write_timeout_s + 1.0)
+        finally:
+            wedged.released.set()
+        assert raised is None and write_timeout_s <= took < write_timeout_s + 0.5, (raised, took)
+        assert link._undrained == ["XOF"]
+        said = [r.getMessage() for r in caplog.records if "not draining" in r.getMessage()]
+        assert len(said) == 1 and "XOF" in said[0] and "not confirmed" in said[0], caplog.text
+        link._serial = real
+        link.close()
