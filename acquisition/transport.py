@@ -445,6 +445,15 @@ class _DrainTimedOut(serial.SerialTimeoutException):
     output not draining): unlike a write time-out, it may still reach the controller."""
 
 
+class _StillQueued(serial.SerialTimeoutException):
+    """A command not written: an earlier one's bytes (its drain timed out) still held the port's
+    queue after a further write time-out. Nothing of this command went."""
+
+    def __init__(self, earlier: list[str]):
+        super().__init__(" ".join(earlier))
+        self.earlier = list(earlier)
+
+
 class SerialTransport:
     """A line-oriented serial link with explicit time-outs and one exchange at a time.
 
@@ -803,6 +812,11 @@ class SerialTransport:
                             f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
                             "but the port's output is not draining (it may still reach the controller)"
                         ) from exc
+                    if isinstance(exc, _StillQueued):
+                        raise WriteTimedOut(
+                            f"{self.url}: {command}: not sent: the port's output still holds "
+                            f"{' '.join(exc.earlier)} after {self.write_timeout_s:g} s (not draining)"
+                        ) from exc
                     if isinstance(exc, serial.SerialTimeoutException):
                         raise WriteTimedOut(
                             f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
@@ -903,6 +917,15 @@ class SerialTransport:
         self.log.debug("%s > %s", self.url, command)
         written = False
         try:
+            if self._undrained:
+                # an earlier command's drain timed out and its bytes may still be queued: written
+                # behind them this one would pipeline, and read their reply as its own once they
+                # left (review s52rvdrain); it waits for them as a drain may, else is not written
+                try:
+                    self._drain(ser)
+                except _DrainTimedOut:
+                    raise _StillQueued(self._undrained) from None
+                self._undrained.clear()
             self.commands_written += 1
             self._undrained.append(command.split(" ", 1)[0])
             self._write(ser, command, payload)

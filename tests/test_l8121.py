@@ -5625,6 +5625,37 @@ def test_an_exchange_whose_output_does_not_drain_ends_after_the_write_time_out(c
             link.close()
 
 
+def test_no_command_is_written_behind_one_whose_output_did_not_drain():
+    """After a drain time-out the command's bytes may still sit in the port's queue: a next command
+    written behind them would pipeline (L8121.md: never), and once they leave it would read their
+    reply as its own (review s52rvdrain: TYP read 'STS 2'). The next exchange first waits for the
+    queue, as long as a drain may; still held, it is not written: WriteTimedOut (nothing went),
+    naming the earlier command. Once the queue is empty, commands go again and read their own replies."""
+    write_timeout_s = 0.1
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, timeout_s=0.3, write_timeout_s=write_timeout_s, min_interval_s=0.0)
+        try:
+            real = link._serial
+            link._serial = wedged = _NeverDrains(real, unsent=4, wait_s=0.0)
+            wedged.released.set()  # (flush() never called on a local port: the queue is polled)
+            with pytest.raises(DeviceError, match="STS: write timed out"):
+                link.query("STS")
+            sent = len(model.commands)
+            raised, took = _ended_within(lambda: link.query("TYP"), write_timeout_s + 1.0)
+            assert isinstance(raised, WriteTimedOut), repr(raised)
+            assert "not sent" in str(raised) and "STS" in str(raised), str(raised)
+            assert write_timeout_s <= took < write_timeout_s + 0.5, took
+            time.sleep(0.05)
+            assert len(model.commands) == sent, model.commands  # TYP never reached the controller
+            wedged.unsent = 0  # the adapter moves again
+            link._serial = real
+            time.sleep(0.35)  # STS's owed reply comes and goes (its window: one reply time-out)
+            assert link.query("TYP") == "TYP L8121-01"
+        finally:
+            link.close()
+
+
 def test_a_switch_off_on_a_port_whose_output_does_not_drain_ends_and_says_so(warm, dialect):
     """off() on a wedged adapter: its XOF's drain waited forever, Ctrl-C held ("please wait").
     Each drain now ends after write_timeout_s: the switch-off ends within its own bound (its
@@ -5645,7 +5676,8 @@ def test_a_switch_off_on_a_port_whose_output_does_not_drain_ends_and_says_so(war
             wedged.released.set()
         assert took < bound, took
         assert isinstance(raised, DeviceError) and "could not confirm X-rays off" in str(raised), repr(raised)
-        assert "write timed out" in str(raised), str(raised)
+        # the XOF's drain timed out, and the STS after it was not written behind its bytes
+        assert "not draining" in str(raised), str(raised)
         transport._serial = real
         src.off()  # the port un-wedged: confirmed
 
