@@ -41,6 +41,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 LINE = 0.5  # px: _confidence.OBSERVED_PX
 
 
+def auc(failed, good) -> float:
+    """The probability that a failed result reads higher than a good one (ties count half)."""
+    f, g = np.asarray(failed, float), np.asarray(good, float)
+    return float(np.mean((f[:, None] > g[None, :]) + 0.5 * (f[:, None] == g[None, :])))
+
+
 def status(epe, ident):
     if epe > max(1.0, 0.5 * ident):
         return "failed"
@@ -151,8 +157,7 @@ def report(rows, line):
     f = np.array([r["fb"] for r in rows if r["status"] == "failed"])
     g = np.array([r["fb"] for r in rows if r["status"] == "good"])
     if f.size and g.size:
-        auc = float(np.mean((f[:, None] > g[None, :]) + 0.5 * (f[:, None] == g[None, :])))
-        print(f"\ntrusted: {f.size} failed, {g.size} good; AUC {auc:.2f}")
+        print(f"\ntrusted: {f.size} failed, {g.size} good; AUC {auc(f, g):.2f}")
     print(f"\n| method | trusted failures flagged at {line} px | trusted good flagged |")
     print("|---|---|---|")
     for m in sorted({r["method"] for r in rows}) + ["all"]:

@@ -45,14 +45,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_register_inverse import LINE, auc, status  # the same line and scoring as session 48's bench
+
 GATE = 0.5  # of the observed interior: "mostly" (radiokit.register._RIM_GATE)
-LINE = 0.5  # px: _confidence.OBSERVED_PX
-
-
-def status(epe, ident):
-    if epe > max(1.0, 0.5 * ident):
-        return "failed"
-    return "good" if epe <= 0.5 else "between"
 
 
 def _share(fixed, moving):
@@ -120,8 +115,7 @@ def report(rows, shares, fb, gate, line):
     fv = np.array([r["share"] for r in tr if r["status"] == "failed"])
     gv = np.array([r["share"] for r in tr if r["status"] == "good"])
     if fv.size and gv.size:
-        auc = float(np.mean((fv[:, None] > gv[None, :]) + 0.5 * (fv[:, None] == gv[None, :])))
-        print(f"AUC of rim_share over the trusted results: {auc:.2f}")
+        print(f"AUC of rim_share over the trusted results: {auc(fv, gv):.2f}")
     opened = [r for r in tr if r["open"]]
     secs = np.array([r["fb_s"] for r in opened if np.isfinite(r["fb_s"])])
     print(
