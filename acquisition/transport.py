@@ -859,7 +859,17 @@ class SerialTransport:
                 except BaseException as exc:  # a write time-out, a signal too: a link left open unchecked
                     if isinstance(exc, NoReply) and command in getattr(self.on_reconnect, "blind", ()):
                         self._send_blind(command)
+                    check = " ".join(self._undrained) or "identity check"  # (the close clears it)
                     self._close_port()  # would be trusted by the next query; reopened, it is asked again
+                    if isinstance(exc, _DrainTimedOut):
+                        # the check's drain, not the command's: said as query()'s drain time-out,
+                        # the error claimed the command written (review s53: "XOF ... written")
+                        what = f"{command}: not sent: " if command else ""
+                        raise WriteTimedOut(
+                            f"{self.url}: {what}after the port was reopened, the identity check's "
+                            f"{check} did not leave the port within {self.write_timeout_s:g} s (its output is "
+                            "not draining)"
+                        ) from exc
                     raise
         except DeviceError as reopen:
             self._close_port()

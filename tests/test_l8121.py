@@ -5702,3 +5702,40 @@ def test_a_blind_switch_off_whose_output_does_not_drain_ends_and_is_kept_for_the
         assert len(said) == 1 and "XOF" in said[0] and "not confirmed" in said[0], caplog.text
         link._serial = real
         link.close()
+
+
+def test_a_reconnect_check_whose_output_does_not_drain_says_the_command_was_not_sent(warm, dialect):
+    """The port reopened (a link lost and found again) with its output not draining: the identity
+    check's query (A's TYP, B's SRL) timed out in its drain, and the switch-off's error said "XOF:
+    write timed out after 0.1 s: written, but ..." (and "STS: ... written" for its confirmation),
+    although only the check had been written. It now says the command was not sent and why (the
+    check's bytes not leaving the port); the switch-off still ends unconfirmed, and says so. The
+    wedged adapter is the fake of the tests above (a pty never holds output back); the check's
+    bytes do reach the real pty."""
+    model, server = warm
+    write_timeout_s = 0.1
+    check = "TYP" if dialect == "A" else "SRL"
+    with driver(server, dialect, off_confirm_s=0.2, off_attempts=1) as src:
+        transport = src._transport
+        transport.write_timeout_s = write_timeout_s
+        transport._close_port()  # as a lost link leaves it: the next exchange reopens and checks
+        reopen = transport._open_port
+
+        def wedged_open():
+            reopen()
+            transport._serial = _WedgedOutput(transport._serial, unsent=4, wait_s=0.0)
+
+        transport._open_port = wedged_open
+        before = len(model.commands)
+        try:
+            with pytest.raises(WriteTimedOut) as xof:
+                transport.query("XOF")
+            said = str(xof.value)
+            assert said.startswith(f"{server.url}: XOF: not sent") and "written" not in said.split(check)[0], said
+            assert f"{check} did not leave the port within 0.1 s" in said, said
+            raised, took = _ended_within(src.off, 5.0)
+        finally:
+            transport._open_port = reopen
+        assert isinstance(raised, DeviceError) and "could not confirm X-rays off" in str(raised), repr(raised)
+        assert ": written" not in str(raised) and "STS: not sent" in str(raised), str(raised)
+        assert set(model.commands[before:]) == {check}, model.commands[before:]  # no XOF, no STS reached it
