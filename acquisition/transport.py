@@ -891,6 +891,7 @@ class SerialTransport:
         but whose replies are lost was switched off so before the check existed, and silence is not
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
+            self.commands_written += 1  # before the write, as every command's: 0 means nothing went
             self._undrained.append(command.split(" ", 1)[0])
             self._write(self._serial, command, self._payload(command))
             self._drain(self._serial, command)
@@ -950,6 +951,8 @@ class SerialTransport:
                 except _DrainTimedOut:
                     raise _StillQueued(self._undrained) from None
                 self._undrained.clear()
+            # counted before the write: a stop landing after the write, before a count after it,
+            # would leave an interrupted caller saying the controller was never reached
             self.commands_written += 1
             self._undrained.append(command.split(" ", 1)[0])
             self._write(ser, command, payload)

@@ -5808,3 +5808,53 @@ def test_a_blind_switch_off_whose_port_goes_mid_drain_is_not_said_written(caplog
             link.close()
         said = [r.getMessage() for r in caplog.records if "XOF" in r.getMessage()]
         assert len(said) == 1 and "lost as it drained" in said[0] and "not known to have left" in said[0], said
+
+
+@pytest.mark.parametrize("where", ["before the write", "after the write"])
+def test_a_stop_at_the_write_leaves_the_command_counted(where):
+    """``commands_written`` tells an interrupted probe or connect whether the controller may have
+    received anything (0: "never reached"). A stop landing at the write -- just before its bytes
+    go, or just after, before the exchange goes on -- must leave the command counted (counted
+    as begun: a count of 1 with nothing sent says only "may have"). Deterministic: a profile hook
+    raises the stop (Python's own Ctrl-C) as the transport's os.write is called or returns.
+    Real pty."""
+    import signal
+
+    event = "c_call" if where == "before the write" else "c_return"
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, timeout_s=0.3, min_interval_s=0.0)
+        try:
+            fired = []
+
+            def hook(frame, kind, arg):
+                if kind == event and arg is os.write and frame.f_code.co_name == "_write" and not fired:
+                    fired.append(kind)
+                    raise KeyboardInterrupt("stopped at the write")
+
+            previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+            sys.setprofile(hook)
+            try:
+                with pytest.raises(KeyboardInterrupt, match="stopped at the write"):
+                    link.query("STS")
+            finally:
+                sys.setprofile(None)
+                signal.signal(signal.SIGINT, previous)
+            assert fired == [event]
+            assert link.commands_written == 1
+            assert link.query("TYP") == "TYP L8121-01"  # the exchange after it reads its own reply
+        finally:
+            link.close()
+
+
+def test_a_blind_switch_off_is_counted_as_written():
+    """The blind XOF (:meth:`SerialTransport._send_blind`, written to a unit silent at the
+    reconnect check) went out uncounted: ``commands_written`` must count every command this link
+    begins to write. Real pty."""
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, min_interval_s=0.0)
+        try:
+            link._send_blind("XOF")
+            assert link.commands_written == 1
+        finally:
+            link.close()
