@@ -440,6 +440,11 @@ def _unsent(ser) -> int:
     return _queued(ser) or 0
 
 
+class _GoneMidDrain(serial.SerialException):
+    """The port went while a command written whole drained (its queue's poll failed: an adapter
+    unplugged, the port closed): the command may have reached the controller, or not."""
+
+
 class _DrainTimedOut(serial.SerialTimeoutException):
     """A command written whole whose bytes did not leave the port within the write time-out (its
     output not draining): unlike a write time-out, it may still reach the controller."""
@@ -859,7 +864,17 @@ class SerialTransport:
                 except BaseException as exc:  # a write time-out, a signal too: a link left open unchecked
                     if isinstance(exc, NoReply) and command in getattr(self.on_reconnect, "blind", ()):
                         self._send_blind(command)
+                    check = " ".join(self._undrained) or "identity check"  # (the close clears it)
                     self._close_port()  # would be trusted by the next query; reopened, it is asked again
+                    if isinstance(exc, _DrainTimedOut):
+                        # the check's drain, not the command's: said as query()'s drain time-out,
+                        # the error claimed the command written (review s53: "XOF ... written")
+                        what = f"{command}: not sent: " if command else ""
+                        raise WriteTimedOut(
+                            f"{self.url}: {what}after the port was reopened, the identity check's "
+                            f"{check} did not leave the port within {self.write_timeout_s:g} s (its output is "
+                            "not draining)"
+                        ) from exc
                     raise
         except DeviceError as reopen:
             self._close_port()
@@ -876,9 +891,10 @@ class SerialTransport:
         but whose replies are lost was switched off so before the check existed, and silence is not
         another device's answer. Its reply is never read: nothing on this link confirms it."""
         try:
+            self.commands_written += 1  # before the write, as every command's: 0 means nothing went
             self._undrained.append(command.split(" ", 1)[0])
             self._write(self._serial, command, self._payload(command))
-            self._drain(self._serial)
+            self._drain(self._serial, command)
             self._undrained.clear()
         except _DrainTimedOut:
             self.log.warning(
@@ -886,6 +902,15 @@ class SerialTransport:
                 "is not draining (not confirmed; left for the port to send as it closes)",
                 self.url,
                 command,
+            )
+            return
+        except _GoneMidDrain as exc:
+            self.log.warning(
+                "%s: %s written to a device that did not answer the identity check, but the port was lost as it "
+                "drained (%s): not known to have left (not confirmed)",
+                self.url,
+                command,
+                exc,
             )
             return
         except _LINK_ERRORS as exc:
@@ -922,17 +947,19 @@ class SerialTransport:
                 # behind them this one would pipeline, and read their reply as its own once they
                 # left (review s52rvdrain); it waits for them as a drain may, else is not written
                 try:
-                    self._drain(ser)
+                    self._drain(ser, " ".join(self._undrained))
                 except _DrainTimedOut:
                     raise _StillQueued(self._undrained) from None
                 self._undrained.clear()
+            # counted before the write: a stop landing after the write, before a count after it,
+            # would leave an interrupted caller saying the controller was never reached
             self.commands_written += 1
             self._undrained.append(command.split(" ", 1)[0])
             self._write(ser, command, payload)
             # its bytes are out: owed its reply from here, even if the drain below fails (the
             # controller may have the command; its reply then comes on the reopened port)
             written = True
-            self._drain(ser)
+            self._drain(ser, command)
             self._undrained.clear()  # the drain waits for the whole output: every byte has left
             reply = self._read_line(command, t0 + self.timeout_s)
         except BaseException as exc:
@@ -986,19 +1013,37 @@ class SerialTransport:
                     raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
                 select.select([], [fd], [], min(left, 0.05))
 
-    def _drain(self, ser) -> None:
+    def _queue_left(self, ser, command: str) -> int:
+        """The bytes still queued as ``command`` drains. Why not :func:`_unsent`: a port gone in the
+        poll (its ioctl's EIO, an unplugged adapter; no descriptor, the port closed) read as an
+        empty queue, the command drained, and the reply was then read from a port that was gone.
+
+        Raises
+        ------
+        _GoneMidDrain
+            The queue cannot be read: a lost link, the command's fate unknown."""
+        fd = getattr(ser, "fd", None)
+        try:
+            if not isinstance(fd, int):
+                raise OSError("the port was closed")
+            return int(ser.out_waiting or 0)
+        except (serial.SerialException, OSError, ValueError, TypeError) as exc:
+            raise _GoneMidDrain(f"the port went while {command} drained: {exc}") from exc
+
+    def _drain(self, ser, command: str = "the command") -> None:
         """Wait until the command just written has left the port, at most ``write_timeout_s``
         (:class:`_DrainTimedOut` past it; its bytes stay queued, :meth:`close` decides on them).
 
         Why: ``ser.flush()`` (tcdrain) has no time limit: on a wedged adapter an exchange waited
         forever, the switch-off's ``XOF`` too, its stop signals held. A local port's queue is
         polled instead, as :meth:`_await_output` does; a link whose queue cannot be read (a URL)
-        keeps ``ser.flush()``, whose wait is bounded by its own time-outs."""
+        keeps ``ser.flush()``, whose wait is bounded by its own time-outs. A port that goes while
+        its queue is polled is a lost link (:class:`_GoneMidDrain`), not a drained command."""
         if _queued(ser) is None:
-            ser.flush()
+            ser.flush()  # a URL; or a local port gone already: tcdrain fails, the link's loss
             return
         deadline = time.monotonic() + self.write_timeout_s
-        while left := _unsent(ser):
+        while left := self._queue_left(ser, command):
             wait = deadline - time.monotonic()
             if wait <= 0:
                 raise _DrainTimedOut(f"Drain timeout ({left} bytes still unsent)")

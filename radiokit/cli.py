@@ -2062,9 +2062,49 @@ def _signals_given_back(give: bool):
     try:
         yield
     finally:
+        if found:
+            _give_back({sig: handler for sig, handler in found.items() if handler is not None})
+
+
+def _give_back(found: dict) -> None:
+    """Put the caller's handlers ``found`` back, all of them, a stop landing meanwhile delivered to
+    the caller's handler once they all are back (session 53). Why: put back one by one, a Ctrl-C
+    landing midway ran the caller's handler there (Python's raises) and cut the loop short, so the
+    handlers after it stayed the command's -- acquire's records a stop and does nothing else -- and
+    the lab script could no longer be stopped by kill; one landing on a handler not yet put back
+    went to the command's, which had finished.
+
+    The signals are blocked in this thread (``pthread_sigmask``) while the handlers are set: one
+    sent then waits in the kernel (Linux keeps a blocked signal pending even where it is ignored)
+    and is delivered as they are unblocked, to the handler now in place. Blocking holds off only
+    this thread's delivery: a signal taken by another thread of the caller's, or one that reached
+    Python just before the block, runs the handler in place at the next check and may raise here;
+    the handlers are then set all the same and its exception raised after them (the first, if
+    several: two at once here are the limit of what Python code can hold together)."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows: nothing to block with
         for sig, handler in found.items():
-            if handler is not None:  # None: installed outside Python, cannot be put back
-                signal.signal(sig, handler)
+            signal.signal(sig, handler)
+        return
+    taken = set(found)
+    blocked = None  # the taken signals the caller had blocked already: left blocked
+    error: BaseException | None = None
+    todo = list(found.items())
+    while True:
+        try:
+            if blocked is None:
+                blocked = signal.pthread_sigmask(signal.SIG_BLOCK, ()) & taken  # (reads the mask only)
+            signal.pthread_sigmask(signal.SIG_BLOCK, taken)
+            while todo:
+                signal.signal(*todo[0])  # set again if the raise below lands after it: the same handler
+                del todo[0]
+            break
+        except BaseException as exc:  # a handler in place ran (see above) and raised: carry on, raise it after
+            error = error or exc
+    try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, taken - blocked)  # a pending stop: the caller's handler, now
+    finally:
+        if error is not None:
+            raise error
 
 
 def _on_main_thread() -> bool:

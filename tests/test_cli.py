@@ -1756,3 +1756,85 @@ def test_python_m_radiokit_cli_keeps_a_finished_acquires_signals_ignored_to_the_
         )
     assert res.returncode == 0, (res.returncode, res.stderr)
     assert res.stderr.strip().splitlines()[-1] == "ignored at exit: [True, True]", res.stderr
+
+
+@pytest.mark.parametrize("landing", ["SIGINT", "SIGHUP", "SIGINT via another thread"])
+def test_main_gives_every_handler_back_when_a_stop_lands_midway_through_the_give_back(monkeypatch, capsys, landing):
+    """A stop landing while ``main()`` puts the caller's handlers back (some back, some not): the
+    caller's Ctrl-C handler raised there, in the loop, and the handlers after it stayed the
+    command's (acquire's records a stop and does nothing else), so the lab script calling main()
+    could no longer be stopped by kill. Now every handler is back, whatever lands, and the stop
+    goes to the caller's handler once they all are. Deterministic: a profile hook raises the
+    signal at this thread (pthread_kill) as radiokit/cli.py has put the caller's SIGINT and SIGTERM
+    handlers back, SIGHUP's not yet; or at another thread of the caller's, which this thread's
+    block does not cover: Python's handler then runs in this thread at once, and raises in the
+    give-back. Real emulator on a pseudo-terminal."""
+    import _signal  # what signal.signal calls: the C function a profile hook sees return
+    import signal
+    import threading
+
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit.cli import _TAKEN, main
+    from radiokit.cli import __file__ as cli_file
+
+    got = []
+
+    def interrupt(signum, frame):  # the caller's Ctrl-C: Python's own way
+        got.append(signum)
+        raise KeyboardInterrupt("the caller's")
+
+    def mine(signum, frame):  # the caller's other handlers record
+        got.append(signum)
+
+    ours = {sig: interrupt if sig == signal.SIGINT else mine for sig in _TAKEN}
+    sent = []
+    me = threading.get_ident()
+
+    def hook(frame, event, arg):
+        if (
+            event == "c_return"
+            and arg is _signal.signal
+            and not sent
+            and frame.f_back.f_code.co_filename == cli_file  # (frame: signal.py's wrapper)
+            and signal.getsignal(signal.SIGINT) is interrupt
+            and signal.getsignal(signal.SIGTERM) is mine
+            and signal.getsignal(signal.SIGHUP) is not mine
+        ):
+            sent.append(getattr(signal, landing.split()[0]))
+            if through_it:
+                go.set()
+                other.join()  # its C handler noted the signal for this thread's Python code: raised here
+            else:
+                signal.pthread_kill(me, sent[0])
+
+    go = threading.Event()  # the caller's thread, started before main() (a thread inherits the block)
+    through_it = landing.endswith("thread")
+    other = threading.Thread(
+        target=lambda: go.wait(10) and through_it and sent and signal.pthread_kill(threading.get_ident(), sent[0])
+    )
+    other.start()
+    before = {sig: signal.signal(sig, handler) for sig, handler in ours.items()}
+    try:
+        with PtyServer(L8121Model(warmed_up=True)) as server:
+            argv = ["acquire", "source", "off", "--port", server.url, "--dialect", "A"]
+            code = outcome = None
+            sys.setprofile(hook)
+            try:
+                code = main(argv)
+            except KeyboardInterrupt as exc:
+                outcome = str(exc)
+            finally:
+                sys.setprofile(None)
+            after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        go.set()
+        other.join()
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert sent == [getattr(signal, landing.split()[0])], "the hook never saw a handler put back"
+    assert after == ours, after
+    assert got == sent  # the stop reached the caller's handler, once
+    if landing.startswith("SIGINT"):
+        assert outcome == "the caller's", (code, outcome)
+    else:
+        assert (code, outcome) == (0, None), capsys.readouterr()  # the caller's handler had it, not the command's

@@ -30,7 +30,7 @@ import pytest
 import serial
 
 from acquisition.emulators.l8121 import DEFAULT_BAUD, L8121Model, PtyServer, SocketServer
-from acquisition.errors import DeviceError, SourceFault, WriteTimedOut
+from acquisition.errors import DeviceError, NoReply, SourceFault, WriteTimedOut
 from acquisition.l8121 import (
     DIALECT_A,
     DIALECT_B,
@@ -5702,3 +5702,159 @@ def test_a_blind_switch_off_whose_output_does_not_drain_ends_and_is_kept_for_the
         assert len(said) == 1 and "XOF" in said[0] and "not confirmed" in said[0], caplog.text
         link._serial = real
         link.close()
+
+
+def test_a_reconnect_check_whose_output_does_not_drain_says_the_command_was_not_sent(warm, dialect):
+    """The port reopened (a link lost and found again) with its output not draining: the identity
+    check's query (A's TYP, B's SRL) timed out in its drain, and the switch-off's error said "XOF:
+    write timed out after 0.1 s: written, but ..." (and "STS: ... written" for its confirmation),
+    although only the check had been written. It now says the command was not sent and why (the
+    check's bytes not leaving the port); the switch-off still ends unconfirmed, and says so. The
+    wedged adapter is the fake of the tests above (a pty never holds output back); the check's
+    bytes do reach the real pty."""
+    model, server = warm
+    write_timeout_s = 0.1
+    check = "TYP" if dialect == "A" else "SRL"
+    with driver(server, dialect, off_confirm_s=0.2, off_attempts=1) as src:
+        transport = src._transport
+        transport.write_timeout_s = write_timeout_s
+        transport._close_port()  # as a lost link leaves it: the next exchange reopens and checks
+        reopen = transport._open_port
+
+        def wedged_open():
+            reopen()
+            transport._serial = _WedgedOutput(transport._serial, unsent=4, wait_s=0.0)
+
+        transport._open_port = wedged_open
+        before = len(model.commands)
+        try:
+            with pytest.raises(WriteTimedOut) as xof:
+                transport.query("XOF")
+            said = str(xof.value)
+            assert said.startswith(f"{server.url}: XOF: not sent") and "written" not in said.split(check)[0], said
+            assert f"{check} did not leave the port within 0.1 s" in said, said
+            raised, took = _ended_within(src.off, 5.0)
+        finally:
+            transport._open_port = reopen
+        assert isinstance(raised, DeviceError) and "could not confirm X-rays off" in str(raised), repr(raised)
+        assert ": written" not in str(raised) and "STS: not sent" in str(raised), str(raised)
+        assert set(model.commands[before:]) == {check}, model.commands[before:]  # no XOF, no STS reached it
+
+
+class _GoneMidDrain(_WedgedOutput):
+    """A real port that goes away while a command drains. Its queue's first poll holds the
+    command's bytes -- the fake: a pty never holds output back -- and ``vanish`` then takes the
+    port away for real: the pty's master closed (an adapter unplugged: the queue's ioctl,
+    TIOCOUTQ, fails with EIO) or the port closed (as another thread's close: no descriptor). Every
+    later poll is the real port's; reads made after it are counted."""
+
+    def __init__(self, ser, vanish):
+        super().__init__(ser, unsent=0, wait_s=0.0)
+        self.vanish, self.gone, self.reads = vanish, False, 0
+
+    @property
+    def out_waiting(self) -> int:
+        if not self.gone:
+            self.gone = True
+            self.vanish(self._ser)
+            return 4
+        return self._ser.out_waiting
+
+    def read(self, size: int = 1) -> bytes:
+        self.reads += self.gone
+        return self._ser.read(size)
+
+
+def _vanish(server, how: str):
+    """How a port goes mid-drain (:class:`_GoneMidDrain`)."""
+    return (lambda ser: server.stop()) if how == "unplugged" else (lambda ser: ser.close())
+
+
+@pytest.mark.parametrize("how", ["unplugged", "closed"])
+def test_a_port_gone_mid_drain_is_a_lost_link_not_a_drained_command(how):
+    """The drain polls the port's output queue; a port gone in that poll (the ioctl's EIO, or no
+    descriptor) was read as an empty queue: the command "drained", its bytes taken to have left,
+    and the reply then read from a port that was gone. It is a lost link: the command's fate
+    unknown (it may have reached the controller), its reply owed, and nothing read as if it had
+    left. Real pty; the queue's first poll is faked (:class:`_GoneMidDrain`)."""
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, timeout_s=0.3, write_timeout_s=0.2, min_interval_s=0.0, retries=0)
+        try:
+            model.hold_once()  # the emulator's reply held: only the drain's outcome decides
+            link._serial = gone = _GoneMidDrain(link._serial, _vanish(server, how))
+            raised, took = _ended_within(lambda: link.query("XOF"), 2.0)
+            assert isinstance(raised, DeviceError) and not isinstance(raised, (NoReply, WriteTimedOut)), repr(raised)
+            said = str(raised)
+            assert said.startswith(f"{server.url}: XOF: link lost (the port went while XOF drained"), said
+            assert gone.reads == 0, gone.reads  # no reply was read for a command taken to have left
+            assert [command for command, _ in link._owed] == ["XOF"]  # its reply owed: it may have arrived
+            assert took < 0.2, took  # the loss is known at the poll, not after a drain or reply time-out
+        finally:
+            link.close()
+
+
+def test_a_blind_switch_off_whose_port_goes_mid_drain_is_not_said_written(caplog):
+    """The blind XOF (written to a unit that did not answer the reconnect check) whose port went
+    while it drained was logged as written like one that had left. It now says the port was lost
+    as it drained: not known to have left. Real pty; the queue's first poll faked (as above)."""
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, write_timeout_s=0.2, min_interval_s=0.0)
+        link._serial = _GoneMidDrain(link._serial, _vanish(server, "unplugged"))
+        try:
+            with caplog.at_level(logging.WARNING, logger="acquisition.transport"):
+                link._send_blind("XOF")
+        finally:
+            link.close()
+        said = [r.getMessage() for r in caplog.records if "XOF" in r.getMessage()]
+        assert len(said) == 1 and "lost as it drained" in said[0] and "not known to have left" in said[0], said
+
+
+@pytest.mark.parametrize("where", ["before the write", "after the write"])
+def test_a_stop_at_the_write_leaves_the_command_counted(where):
+    """``commands_written`` tells an interrupted probe or connect whether the controller may have
+    received anything (0: "never reached"). A stop landing at the write -- just before its bytes
+    go, or just after, before the exchange goes on -- must leave the command counted (counted
+    as begun: a count of 1 with nothing sent says only "may have"). Deterministic: a profile hook
+    raises the stop (Python's own Ctrl-C) as the transport's os.write is called or returns.
+    Real pty."""
+    import signal
+
+    event = "c_call" if where == "before the write" else "c_return"
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        link = SerialTransport(server.url, timeout_s=0.3, min_interval_s=0.0)
+        try:
+            fired = []
+
+            def hook(frame, kind, arg):
+                if kind == event and arg is os.write and frame.f_code.co_name == "_write" and not fired:
+                    fired.append(kind)
+                    raise KeyboardInterrupt("stopped at the write")
+
+            previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+            sys.setprofile(hook)
+            try:
+                with pytest.raises(KeyboardInterrupt, match="stopped at the write"):
+                    link.query("STS")
+            finally:
+                sys.setprofile(None)
+                signal.signal(signal.SIGINT, previous)
+            assert fired == [event]
+            assert link.commands_written == 1
+            assert link.query("TYP") == "TYP L8121-01"  # the exchange after it reads its own reply
+        finally:
+            link.close()
+
+
+def test_a_blind_switch_off_is_counted_as_written():
+    """The blind XOF (:meth:`SerialTransport._send_blind`, written to a unit silent at the
+    reconnect check) went out uncounted: ``commands_written`` must count every command this link
+    begins to write. Real pty."""
+    with PtyServer(L8121Model(warmed_up=True)) as server:
+        link = SerialTransport(server.url, min_interval_s=0.0)
+        try:
+            link._send_blind("XOF")
+            assert link.commands_written == 1
+        finally:
+            link.close()

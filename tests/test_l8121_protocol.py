@@ -452,41 +452,43 @@ def test_a_refused_xof_without_a_reason_keeps_the_ramp_down_window(dialect, refu
 # ``poll``: what is asked before the XOF; ``after``: what is asked after the switch-off, before
 # ``SER``. A fault the beam reading shows by itself (a state other than X-rays on, a collapsed
 # current) is switched off at once; the interlock is asked after the XOF, for the message only.
-@pytest.mark.parametrize(
-    "dialect, poll, after, code, message",
-    [
-        ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], [], "SER 1", "interlock open"),
-        (
-            "B",
-            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA"), ("SIN", "INTER LOCK OFF")],
-            [],
-            "SER 1",
-            "interlock open",
-        ),
-        # the controller drops the beam when the interlock opens: seen in the reading, off at once
-        ("A", [("SAR", "SAR 2 0 0 0 0 0 0")], [("SIN", "SIN 1")], "SER 1", "interlock open"),
-        ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK OFF")], "SER 1", "interlock open"),
-        ("A", [("SAR", "SAR 4 0 0 0 0 0 0")], [], "SER 3", "overload"),
-        ("B", [("STS", "OVER")], [], "SER 3", "overload"),  # no SHV/SCU/SIN: off at once
-        ("A", [("SAR", "SAR 3 60 0 0 0 0 0")], [("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
-        (
-            "B",
-            [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA")],
-            [("SIN", "INTER LOCK ON")],
-            "SER 0",
-            "beam dropped: measured current 0 µA",
-        ),
-        ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
-        # an overload between B's STS and its SCU: named by the STS after the XOF
-        (
-            "B",
-            [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA")],
-            [("SIN", "INTER LOCK ON")],
-            "SER 3",
-            r"overload \(beam dropped: measured current 0 µA",
-        ),
-    ],
-)
+# ``SER`` reads 0 after each: L8121.md ties no code to an interlock or an overload (session 53;
+# they read SER 1 and SER 3, B's relay or internal faults).
+FAULTS = [
+    ("A", [("SAR", "SAR 3 60 250 0 0 0 0"), ("SIN", "SIN 1")], [], "SER 0", "interlock open"),
+    (
+        "B",
+        [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 250uA"), ("SIN", "INTER LOCK OFF")],
+        [],
+        "SER 0",
+        "interlock open",
+    ),
+    # the controller drops the beam when the interlock opens: seen in the reading, off at once
+    ("A", [("SAR", "SAR 2 0 0 0 0 0 0")], [("SIN", "SIN 1")], "SER 0", "interlock open"),
+    ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK OFF")], "SER 0", "interlock open"),
+    ("A", [("SAR", "SAR 4 0 0 0 0 0 0")], [], "SER 0", "overload"),
+    ("B", [("STS", "OVER")], [], "SER 0", "overload"),  # no SHV/SCU/SIN: off at once
+    ("A", [("SAR", "SAR 3 60 0 0 0 0 0")], [("SIN", "SIN 0")], "SER 0", "beam dropped: measured current 0 µA"),
+    (
+        "B",
+        [("STS", "XON"), ("SHV", "SHV 60.0kV"), ("SCU", "SCU 0uA")],
+        [("SIN", "INTER LOCK ON")],
+        "SER 0",
+        "beam dropped: measured current 0 µA",
+    ),
+    ("B", [("STS", "STANDBY")], [("SIN", "INTER LOCK ON")], "SER 0", "beam dropped: state STANDBY"),
+    # an overload between B's STS and its SCU: named by the STS after the XOF
+    (
+        "B",
+        [("STS", "XON"), ("SHV", "SHV 0.0kV"), ("SCU", "SCU 0uA")],
+        [("SIN", "INTER LOCK ON")],
+        "SER 0",
+        r"overload \(beam dropped: measured current 0 µA",
+    ),
+]
+
+
+@pytest.mark.parametrize("dialect, poll, after, code, message", FAULTS)
 def test_check_switches_off_on_a_fault(dialect, poll, after, code, message):
     overload = "overload" in message
     off = OFF[dialect] if not overload else [("XOF", "XOF"), ("STS", {"A": "STS 4", "B": "OVER"}[dialect])]
@@ -495,6 +497,29 @@ def test_check_switches_off_on_a_fault(dialect, poll, after, code, message):
         src.on(60, 250)
         with pytest.raises(SourceFault, match=f"{message}.*X-rays switched off"):
             src.check()
+
+
+@pytest.mark.parametrize("dialect, poll, after, code, message", FAULTS)
+def test_the_fault_scripts_ser_is_what_l8121_md_gives_the_emulator(dialect, poll, after, code, message):
+    """The scripts above paired an open interlock with ``SER 1`` and an overload with ``SER 3``:
+    L8121.md ties no ``SER`` code to either -- dialect A's is a "controller error code, 0 none",
+    B's "1-4 relay or internal faults" of the control board -- and the emulator, which follows
+    it, leaves ``SER`` as it was (0). Each script's ``SER`` is the emulator's after the same
+    fault: a script must not teach the driver a code the document does not give."""
+    from acquisition.emulators.l8121 import L8121Model
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    for command, _ in ON_60_250[dialect]:
+        model.handle(command)
+    assert model.handle("STS") in ("STS 3", "XON")  # on, as the script's driver found it
+    if "overload" in message:
+        model.overload()
+    elif "interlock" in message:
+        model.open_interlock()
+    else:
+        model.drop_beam()
+    model.handle("XOF")
+    assert model.handle("SER") == code
 
 
 @pytest.mark.parametrize(
