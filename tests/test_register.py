@@ -282,6 +282,9 @@ def test_divergence_is_reported():
         (lambda f: (f.astype(np.float64) * 1e300, f), r"^fixed image has values beyond float32's range"),
         # np.asarray dropped the mask: the masked pixels were registered as data, silently
         (lambda f: (f, np.ma.masked_array(f, f > 0.5)), r"^moving is a masked array, whose mask would be ignored"),
+        # a line-scan strip 32767 px long: OpenCV's remap (cv2.error) deep in rc, a traceback on the CLI
+        (lambda f: (np.resize(f, (8, 32767)), np.resize(f, (8, 32767))), r"^fixed image is too large .*32766 px"),
+        (lambda f: (np.resize(f, (32767, 8)), np.resize(f, (32767, 8))), r"^fixed image is too large .*32766 px"),
     ],
 )
 def test_bad_inputs_are_refused_clearly(bad, match):
