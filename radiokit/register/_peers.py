@@ -611,6 +611,12 @@ def _elastix(
         resolutions=(resolutions, 1, np.inf),
         samples=(samples, 1, np.inf),
     )
+    # a string or a list of pairs was an AttributeError from .items() once itk had loaded
+    if parameters is not None and not (isinstance(parameters, dict) and all(isinstance(k, str) for k in parameters)):
+        raise ValueError(
+            f"elastix: parameters={parameters!r}: expected a dict of elastix parameter names to values "
+            "(strings or lists), e.g. {'Optimizer': 'QuasiNewtonLBFGS'}"
+        )
     # after the checks: reaching elastix_registration_method loads all of itk (12 s here)
     itk = _require("itk", "elastix", "itk-elastix", attr="elastix_registration_method")
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
