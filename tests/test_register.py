@@ -3518,6 +3518,23 @@ def test_warp_refuses_a_field_that_is_not_finite(bad):
         warp(image, field)
 
 
+@pytest.mark.parametrize("shape", [(4, 40000), (40000, 3)])
+def test_warp_samples_a_frame_past_opencvs_side_limit(shape):
+    """``warp`` of a strip over 32766 px long (OpenCV's remap asserts sides under SHRT_MAX) was a
+    cv2.error; bilinear on a linear ramp is exact, so a pull of (0.25, 1.5) px reads the ramp
+    there (to float32 rounding of values up to 1e5), the border repeated past the last sample."""
+    rows, cols = shape
+    ramp = (np.arange(rows, dtype=np.float32)[:, None] * 3 + np.arange(cols, dtype=np.float32)[None, :] * 2).astype(
+        np.float32
+    )
+    d = np.empty((2, rows, cols), np.float32)
+    d[0], d[1] = 0.25, 1.5
+    out = warp(ramp, d)
+    rr = np.minimum(np.arange(rows)[:, None] + 0.25, rows - 1)
+    cc = np.minimum(np.arange(cols)[None, :] + 1.5, cols - 1)
+    np.testing.assert_allclose(out, rr * 3 + cc * 2, rtol=0, atol=0.02)
+
+
 def test_warp_refuses_a_masked_image():
     """np.asarray dropped the mask: the masked pixels were resampled as data."""
     image = np.ma.masked_array(np.ones((20, 30), np.float32), mask=np.eye(20, 30, dtype=bool))

@@ -58,9 +58,9 @@ __all__ = [
 #: the least side, in pixels, of an image register() takes (OpenCV asserted on smaller pairs)
 MIN_SIDE = 8
 
-#: the largest side register() takes: OpenCV's remap, which every method's warp and rc's sampling
+#: the largest side register() takes: OpenCV's remap, which rc's sampling and the OpenCV peers
 #: use, asserts sides under SHRT_MAX (32767); a line-scan strip 8 x 40000 was a cv2.error from
-#: inside rc, a traceback on the command line
+#: inside rc, a traceback on the command line (``warp`` itself samples such a frame)
 MAX_SIDE = 32766
 
 #: the methods on the B-spline transform, which take rc's presets (``preset=``)
