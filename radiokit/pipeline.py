@@ -1238,11 +1238,16 @@ def _check_inputs(path: Path, control) -> None:
 def _check_registrable(path, shape) -> None:
     """Frames register() can take. Why: a 3x3 experiment was told to pass its ROIs (no inclusion
     detectable in it), and given them, calibrated and corrected before "too small to register"."""
-    from radiokit.register import MIN_SIDE
+    from radiokit.register import MAX_SIDE, MIN_SIDE
 
     if min(shape) < MIN_SIDE:
         raise FormatError(
             path, f"frames are {shape[0]}x{shape[1]}: too small to register ({MIN_SIDE} px a side at least)"
+        )
+    if max(shape) > MAX_SIDE:
+        raise FormatError(
+            path,
+            f"frames are {shape[0]}x{shape[1]}: too large to register ({MAX_SIDE} px a side at most, OpenCV's limit)",
         )
 
 

@@ -561,6 +561,30 @@ def test_the_two_scales_hint_says_only_what_the_values_show(tmp_path):
     assert "a 16-bit copy of a 32-bit image?" in res.stdout and "8-bit" not in res.stdout, res.stdout
 
 
+def test_a_pair_of_two_value_scales_is_flagged_with_the_ranges(tmp_path):
+    """s53: 12-bit counts in a uint16 TIFF against the same image in a float32 TIFF scaled to 0-1,
+    moved 2 px: rc found the motion (NCC 0.43 -> 0.99) but the checks, which compare the pair's
+    intensities and explain a gain of at most 2 either way, flagged it "did not find the motion",
+    and no hint said why (the 8-bit/16-bit one looks at integer types only). The flag stays; the
+    warning names the two ranges. One image against its own copy times 1.5 (a gain the checks
+    explain) passes, without it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    image = ndimage.gaussian_filter(rng.random((128, 160)), 2)
+    image = (image - image.min()) / (image.max() - image.min())
+    moved = ndimage.shift(image, (-2, 1), order=3, mode="reflect")
+    tifffile.imwrite(tmp_path / "counts.tif", np.round(moved * 4095).astype(np.uint16))
+    tifffile.imwrite(tmp_path / "unit.tif", image.astype(np.float32))
+    tifffile.imwrite(tmp_path / "gain.tif", (image * 1.5).astype(np.float32))
+    tifffile.imwrite(tmp_path / "moved.tif", moved.astype(np.float32))
+    res = run_cli("register", "counts.tif", "unit.tif", "-o", "f.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 1, (res.stdout, res.stderr)
+    assert "the images' 1-99 % ranges differ" in res.stdout and "fold" in res.stdout, res.stdout
+    res = run_cli("register", "moved.tif", "gain.tif", "-o", "g.h5", "-q", cwd=tmp_path)
+    assert res.returncode == 0 and "ranges differ" not in res.stdout, (res.stdout, res.stderr)
+
+
 def test_two_datasets_of_one_file_are_two_inputs(tmp_path):
     """Darks and flats in two datasets of one file (--dark-dataset, --flat-dataset) are recorded
     as two inputs, each with its dataset, option and frames."""

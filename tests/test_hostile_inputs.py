@@ -694,6 +694,15 @@ def test_process_names_frames_too_small_to_register_before_any_work(shape, rois,
     assert not (tmp_path / "res").exists()
 
 
+def test_process_names_frames_too_large_to_register_before_any_work(tmp_path):
+    """Frames over OpenCV's remap limit (32766 px a side) are refused with the frames' size before
+    calibrating and correcting, as frames too small are: register() refuses them, after that work."""
+    path = _experiment(tmp_path / "exp.h5", shape=(8, 32767))
+    res = run_cli("process", path, "-q", "-o", tmp_path / "res", "--inclusion", "0", "8", "0", "9")
+    one_line_error(res, "exp.h5", "8x32767", "too large to register", "32766 px")
+    assert not (tmp_path / "res").exists()
+
+
 @pytest.mark.parametrize(
     "args, words",
     [

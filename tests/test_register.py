@@ -282,6 +282,9 @@ def test_divergence_is_reported():
         (lambda f: (f.astype(np.float64) * 1e300, f), r"^fixed image has values beyond float32's range"),
         # np.asarray dropped the mask: the masked pixels were registered as data, silently
         (lambda f: (f, np.ma.masked_array(f, f > 0.5)), r"^moving is a masked array, whose mask would be ignored"),
+        # a line-scan strip 32767 px long: OpenCV's remap (cv2.error) deep in rc, a traceback on the CLI
+        (lambda f: (np.resize(f, (8, 32767)), np.resize(f, (8, 32767))), r"^fixed image is too large .*32766 px"),
+        (lambda f: (np.resize(f, (32767, 8)), np.resize(f, (32767, 8))), r"^fixed image is too large .*32766 px"),
     ],
 )
 def test_bad_inputs_are_refused_clearly(bad, match):
@@ -3513,6 +3516,23 @@ def test_warp_refuses_a_field_that_is_not_finite(bad):
     field[1, 3, 4] = bad
     with pytest.raises(ValueError, match=r"displacement has 1 non-finite value\(s\) \(NaN or inf\)"):
         warp(image, field)
+
+
+@pytest.mark.parametrize("shape", [(4, 40000), (40000, 3)])
+def test_warp_samples_a_frame_past_opencvs_side_limit(shape):
+    """``warp`` of a strip over 32766 px long (OpenCV's remap asserts sides under SHRT_MAX) was a
+    cv2.error; bilinear on a linear ramp is exact, so a pull of (0.25, 1.5) px reads the ramp
+    there (to float32 rounding of values up to 1e5), the border repeated past the last sample."""
+    rows, cols = shape
+    ramp = (np.arange(rows, dtype=np.float32)[:, None] * 3 + np.arange(cols, dtype=np.float32)[None, :] * 2).astype(
+        np.float32
+    )
+    d = np.empty((2, rows, cols), np.float32)
+    d[0], d[1] = 0.25, 1.5
+    out = warp(ramp, d)
+    rr = np.minimum(np.arange(rows)[:, None] + 0.25, rows - 1)
+    cc = np.minimum(np.arange(cols)[None, :] + 1.5, cols - 1)
+    np.testing.assert_allclose(out, rr * 3 + cc * 2, rtol=0, atol=0.02)
 
 
 def test_warp_refuses_a_masked_image():

@@ -52,10 +52,16 @@ __all__ = [
     "load_methods",
     "check_options",
     "MIN_SIDE",
+    "MAX_SIDE",
 ]
 
 #: the least side, in pixels, of an image register() takes (OpenCV asserted on smaller pairs)
 MIN_SIDE = 8
+
+#: the largest side register() takes: OpenCV's remap, which rc's sampling and the OpenCV peers
+#: use, asserts sides under SHRT_MAX (32767); a line-scan strip 8 x 40000 was a cv2.error from
+#: inside rc, a traceback on the command line (``warp`` itself samples such a frame)
+MAX_SIDE = 32766
 
 #: the methods on the B-spline transform, which take rc's presets (``preset=``)
 BSPLINE_METHODS = ("rc", "ssd", "ncc", "mi")
@@ -278,6 +284,11 @@ def _check(fixed, moving, mask):
             raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
         if min(a.shape) < MIN_SIDE:
             raise ValueError(f"{name} image is too small to register: {a.shape}")
+        if max(a.shape) > MAX_SIDE:
+            raise ValueError(
+                f"{name} image is too large to register: {a.shape}, over {MAX_SIDE} px a side "
+                "(OpenCV's limit); crop or bin it"
+            )
     if f.shape != m.shape:
         raise ValueError(f"fixed {f.shape} and moving {m.shape} images differ in shape")
     cast = []
@@ -448,7 +459,7 @@ def register(
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
 
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
-    finite (and within float32's range), non-constant, of one shape and at least 8 px a side, a
+    finite (and within float32's range), non-constant, of one shape and 8 to 32766 px a side, a
     mask that is not a bool array of that shape selecting a pixel, a masked array (``np.ma``), an unknown method or preset,
     or an option value out of its range; TypeError for an option the method does not take; ``MissingPeer`` (ImportError) for a
     peer whose package is not installed.

@@ -74,7 +74,9 @@ def _warp_rows(image, d, row0, order=1, cval=None) -> np.ndarray:
     rr = np.arange(row0, row0 + rows, dtype=np.float32)[:, None]
     cc = np.arange(cols, dtype=np.float32)[None, :]
     r, c = rr + d[0], cc + d[1]
-    if order == 1:
+    # OpenCV's remap asserts sides under SHRT_MAX (an 8 x 40000 strip was a cv2.error): past it,
+    # scipy's bilinear, the same border (register() refuses such a pair; warp() samples it)
+    if order == 1 and max(*image.shape, rows, cols) < 32767:
         out = cv2.remap(image, c, r, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     else:
         from scipy import ndimage

@@ -52,6 +52,7 @@ demons (dense, local) ignore it.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.util
 import re
@@ -414,6 +415,20 @@ def _sitk_image(sitk, a):
     return sitk.GetImageFromArray(np.ascontiguousarray(a, np.float32))  # spacing 1, origin 0
 
 
+@contextlib.contextmanager
+def _itk_warnings_off(sitk):
+    """SimpleITK's global warning display off for the block, restored after. Its warnings are C++
+    writes to the process's stderr: a field the optimiser carried out of an 8 x 8 frame wrote "No
+    valid points were found" six lines at a time, 234 lines under the command line's one; the
+    result is judged by radiokit's checks instead (which flag that field)."""
+    was = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(was)
+
+
 @_method("sitk-bspline")
 def _sitk_bspline(
     fixed,
@@ -478,7 +493,8 @@ def _sitk_bspline(
     reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
     its = []
     reg.AddCommand(sitk.sitkIterationEvent, lambda: its.append(reg.GetOptimizerIteration()))
-    out = reg.Execute(F, M)
+    with _itk_warnings_off(sitk):
+        out = reg.Execute(F, M)
     conv = sitk.TransformToDisplacementFieldFilter()
     conv.SetReferenceImage(F)
     conv.SetOutputPixelType(sitk.sitkVectorFloat64)
@@ -549,7 +565,8 @@ def _sitk_demons(
         if variant != "classic":
             demons.SetMaximumUpdateStepLength(float(max_step))
         init = sitk.GetImageFromArray(np.stack([d[1], d[0]], axis=-1).astype(np.float64), isVector=True)
-        out = demons.Execute(_sitk_image(sitk, fl), _sitk_image(sitk, ml), init)
+        with _itk_warnings_off(sitk):
+            out = demons.Execute(_sitk_image(sitk, fl), _sitk_image(sitk, ml), init)
         d = _from_xy(sitk.GetArrayFromImage(out))
     return d, {"iterations": int(iterations) * n_levels}
 
@@ -594,6 +611,12 @@ def _elastix(
         resolutions=(resolutions, 1, np.inf),
         samples=(samples, 1, np.inf),
     )
+    # a string or a list of pairs was an AttributeError from .items() once itk had loaded
+    if parameters is not None and not (isinstance(parameters, dict) and all(isinstance(k, str) for k in parameters)):
+        raise ValueError(
+            f"elastix: parameters={parameters!r}: expected a dict of elastix parameter names to values "
+            "(strings or lists), e.g. {'Optimizer': 'QuasiNewtonLBFGS'}"
+        )
     # after the checks: reaching elastix_registration_method loads all of itk (12 s here)
     itk = _require("itk", "elastix", "itk-elastix", attr="elastix_registration_method")
     f, m = _prepare(fixed, moving, prefilter, highpass_sigma)
