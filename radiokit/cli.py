@@ -353,11 +353,13 @@ def _assumed_pitch(src) -> dict:
     if meta.get("pixel_size_mm") is not None:
         return {}
     from radiokit._json import loads_record
+    from radiokit.results import MAX_JSON_BYTES
 
     text = src.hdf5_attribute(ENTRY, "results_json")
     try:
-        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52)
-        numbers = loads_record(text.decode() if isinstance(text, bytes) else text)
+        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52);
+        # results.json's text, read at its bound: 4 MiB, a description's, skipped a long run's (s53)
+        numbers = loads_record(text.decode() if isinstance(text, bytes) else text, "results_json", MAX_JSON_BYTES)
         pitch = float(numbers["pixel_size_mm"]) * 1e3
     except (TypeError, ValueError, KeyError, AttributeError, OverflowError):  # not radiokit's JSON: say nothing
         return {}

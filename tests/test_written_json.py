@@ -95,3 +95,32 @@ def test_a_calibration_whose_provenance_would_not_read_back_is_refused_unwritten
     assert len(strict_json.dumps(largest.provenance)) > strict_json.MAX_CHARS * 9 // 10
     largest.save(out)
     assert Calibration.load(out).provenance["inputs"] == largest.provenance["inputs"]
+
+
+def test_results_h5_holds_its_results_json_read_at_the_results_json_bound(tmp_path):
+    """results.h5 embeds results.json's text, read by results.json's own bound (64 MiB), not a
+    description's 4 MiB: the numbers of a run of 250 000 ratios (4.8 MB) were skipped by ``info``,
+    which then said nothing of the pitch the run assumed."""
+    from conftest import run_cli
+
+    from radiokit.io import ResultsRecord, write_results
+    from radiokit.results import MAX_JSON_BYTES
+
+    ratios = [i / 7 for i in range(250_000)]
+    numbers = {"schema_version": "1.4", "pixel_size_mm": 0.05, "pixel_size_recorded": False, "ratios": ratios}
+    text = strict_json.dumps_readable(numbers, "results.h5", "results.json", MAX_JSON_BYTES)
+    assert strict_json.MAX_CHARS < len(text) < MAX_JSON_BYTES
+    path = tmp_path / "results.h5"
+    record = ResultsRecord(
+        source="exp.h5",
+        results_json=text,
+        line_integral=np.zeros((2, 8, 8), np.float32),
+        step=np.array([1, 2]),
+        ratio=np.array([0.1, 0.2]),
+        crop=np.array([0, 8, 0, 8]),
+        pair=(1, 2),
+    )
+    write_results(path, record)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    assert "not recorded (assumed 50 \u00b5m)" in res.stdout, res.stdout
