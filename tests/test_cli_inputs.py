@@ -4,6 +4,7 @@ characters. Real files (tifffile, h5py) written to ``tmp_path``, run through ``m
 
 import json
 import os
+import re
 import subprocess
 import sys
 from datetime import UTC, datetime
@@ -498,6 +499,31 @@ def test_a_files_own_text_with_control_characters_never_reaches_the_terminal_raw
         line = next(line for line in res.stderr.splitlines() if "evil.h5" in line)
         assert "\x1b" not in res.stderr and "\x07" not in res.stderr, repr(res.stderr)
         assert "x\\x1b]2;pwn\\x07y" in line, line  # escaped, still naming the dataset
+
+
+@pytest.mark.parametrize("shape", [(2, 8, 8), (4,)])
+def test_a_files_own_name_with_a_backslash_prints_apart_from_one_with_a_newline(tmp_path, shape):
+    """s53: a dataset named ``a\\nb`` (a backslash, then n) printed ``/a\\nb`` in the error line,
+    as a newline's escape reads, and one named ``a<newline>b`` printed ``/a b``, as a space's. A
+    name a file holds prints as a file name does (``shown``): as it is when plain, else quoted
+    and escaped, reading back (``ast.literal_eval``) as the name: three names, three lines."""
+    import ast
+
+    names = {"backslash": "a\\nb", "newline": "a\nb", "space": "a b"}
+    printed = {}
+    for tag, name in names.items():
+        _write_h5(tmp_path / f"{tag}.h5", name, np.zeros(shape, np.uint16))
+        args = ("info", f"{tag}.h5") if len(shape) == 3 else ("info", "--dataset", name, f"{tag}.h5")
+        res = run_cli(*args, cwd=tmp_path)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        (line,) = res.stderr.splitlines()
+        assert line.startswith(f"radiokit info: {tag}.h5: "), line
+        found = re.search(r"('(?:[^'\\]|\\.)*'|/a b|a b)( \(2x8x8 uint16\)| has shape)", line)
+        assert found, line
+        said = found.group(1)
+        assert (ast.literal_eval(said) if said.startswith("'") else said).lstrip("/") == name, line
+        printed[tag] = line.replace(f"{tag}.h5", "FILE")
+    assert len(set(printed.values())) == 3, printed
 
 
 # ------------------------------------------------------------------------------------------------

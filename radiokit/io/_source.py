@@ -1661,7 +1661,7 @@ class FrameSource:
                 raise self._no_dataset(dataset)
             if self._h5[dataset].ndim not in (2, 3):
                 raise FormatError(
-                    self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
+                    self.path, f"{shown(dataset)} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             # its storage checked below, once the frames to be read are known
             data = self._checked(dataset, "buif", (2, 3), written=False)
