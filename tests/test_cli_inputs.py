@@ -526,6 +526,23 @@ def test_a_files_own_name_with_a_backslash_prints_apart_from_one_with_a_newline(
     assert len(set(printed.values())) == 3, printed
 
 
+def test_an_external_links_names_print_as_names_do(tmp_path):
+    """s53: an external link's own name and the file and path it points at are a file's text too:
+    a link ``a\\nb`` to ``x<newline>y.h5`` printed ``/a\\nb is an external link to x y.h5:/d``,
+    the backslash as a newline's escape and the newline as a space. Each prints as names print."""
+    import ast
+
+    with h5py.File(tmp_path / "link.h5", "w") as f:
+        f["a\\nb"] = h5py.ExternalLink("x\ny.h5", "/d\\e")
+    res = run_cli("info", "--dataset", "a\\nb", "link.h5", cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = res.stderr.splitlines()
+    found = re.search(r"('(?:[^'\\]|\\.)*') is an external link to ('(?:[^'\\]|\\.)*')", line)
+    assert found, line
+    assert ast.literal_eval(found.group(1)) == "/a\\nb", line
+    assert ast.literal_eval(found.group(2)) == "x\ny.h5:/d\\e", line
+
+
 # ------------------------------------------------------------------------------------------------
 # 5. an 8-bit and a 16-bit copy of one image registered
 # ------------------------------------------------------------------------------------------------

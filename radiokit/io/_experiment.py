@@ -1367,13 +1367,17 @@ def check_links(path, h5, name, allow_external, depth=0):
             return
         if isinstance(link, h5py.ExternalLink):
             if not allow_external:
-                _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+                # names the file holds, as names print (s53: "a\\nb" read as a newline's escape)
+                target = shown(f"{link.filename}:{link.path}")
+                _refuse_external(path, f"{shown(prefix)} is an external link to {target}")
             try:
                 h5[prefix]
             except (KeyError, OSError) as exc:
                 why = str(exc).split("(", 1)[-1].rstrip(")\"' ") or "not found"
                 raise FormatError(
-                    path, f"{prefix} is an external link to {link.filename}:{link.path}, which cannot be opened ({why})"
+                    path,
+                    f"{shown(prefix)} is an external link to {shown(f'{link.filename}:{link.path}')}, which cannot be "
+                    f"opened ({why})",
                 ) from None
             return  # beyond it lies another file, whose own links are its own
         if isinstance(link, h5py.SoftLink) and depth < 8:
@@ -1386,13 +1390,13 @@ def check_local(path, h5, ds, allow_external=False) -> None:
     if allow_external:
         return
     if ds.file.filename != h5.filename:
-        _refuse_external(path, f"{shown(ds.name)} lives in another file ({ds.file.filename})")
+        _refuse_external(path, f"{shown(ds.name)} lives in another file ({shown(ds.file.filename)})")
     if ds.is_virtual:
         sources = ds.virtual_sources()
         if sources and all(src.file_name == "." for src in sources):  # "." is libhdf5's "this file"
             # not "in other files": the user went looking for files that do not exist
             names = sorted({src.dset_name for src in sources})
-            listed = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            listed = ", ".join(map(shown, names[:3])) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
             raise FormatError(
                 path,
                 f"{shown(ds.name)} is a virtual dataset mapping {listed} of this file: virtual datasets are not read "
@@ -1649,14 +1653,16 @@ def _found_source(path, ds, folder: Path, name: str, dset: str, real: Path | Non
     cannot be opened or holds no dataset ``dset``."""
     found = next((p for p in _source_places(folder, name, real=real) if p.is_file()), None)
     if found is None:
-        raise FormatError(path, f"{shown(ds.name)} is a virtual dataset whose source file {name} is missing")
+        raise FormatError(path, f"{shown(ds.name)} is a virtual dataset whose source file {shown(name)} is missing")
     try:
         with h5py.File(found, "r") as src:
             present = isinstance(src.get(dset), h5py.Dataset)
     except OSError as exc:
-        raise FormatError(path, f"{shown(ds.name)}: its virtual source {found} cannot be opened: {exc}") from None
+        raise FormatError(
+            path, f"{shown(ds.name)}: its virtual source {shown(found)} cannot be opened: {exc}"
+        ) from None
     if not present:
-        raise FormatError(path, f"{shown(ds.name)}: its virtual source {found} holds no dataset {dset}")
+        raise FormatError(path, f"{shown(ds.name)}: its virtual source {shown(found)} holds no dataset {shown(dset)}")
     return found
 
 
@@ -1697,7 +1703,7 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
     axis = axes[0]
     extent = ds.shape[axis]
     covered = max(0, -(-(extent - start[axis]) // max(stride[axis], 1)))
-    missing = f"{expand(name, covered)}:{expand(dset, covered)}"
+    missing = shown(f"{expand(name, covered)}:{expand(dset, covered)}")
     if not covered:
         raise FormatError(
             path,
@@ -1709,8 +1715,8 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
     if len(folders) > 1:
         raise FormatError(
             path,
-            f"{shown(ds.name)} is a virtual dataset whose sources {name} were found in {len(folders)} folders "
-            f"({', '.join(sorted(map(str, folders)))}): libhdf5 looks beside the file, then in the working "
+            f"{shown(ds.name)} is a virtual dataset whose sources {shown(name)} were found in {len(folders)} folders "
+            f"({', '.join(sorted(map(shown, folders)))}): libhdf5 looks beside the file, then in the working "
             "directory, so the series is mixed with another one's files; run from another folder",
         )
     tokens = re.split(r"(%%|%b)", Path(name).name)
@@ -1732,7 +1738,7 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
             path,
             f"{shown(ds.name)} is a virtual dataset read short: libhdf5 stops at the first source it cannot read, "
             f"{missing} (source {covered}), so its stack ends after {covered} block(s) although "
-            f"{expand(Path(name).name, min(later))} is there",
+            f"{shown(expand(Path(name).name, min(later)))} is there",
         )
 
 
