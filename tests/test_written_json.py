@@ -124,3 +124,29 @@ def test_results_h5_holds_its_results_json_read_at_the_results_json_bound(tmp_pa
     res = run_cli("info", path)
     assert res.returncode == 0, res.stderr
     assert "not recorded (assumed 50 \u00b5m)" in res.stdout, res.stdout
+
+
+def test_a_results_json_that_would_not_read_back_is_refused_unwritten(tmp_path):
+    """Results.write_json wrote a record whose "paper" (the caller's) nests past radiokit's 32
+    levels, and load_results then refused the file it had written; now refused before the file,
+    in one line naming it. The same record at the depth allowed is written and reads back."""
+    from test_hostile_inputs import _results_json
+
+    from radiokit.results import Results, load_results
+
+    def nested(levels):
+        value = {}
+        for _ in range(levels - 1):  # the paper dict is a level inside the results' own object
+            value = {"x": value}
+        return value
+
+    out = tmp_path / "results.json"
+    deep = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH + 1)})
+    with pytest.raises(ValueError) as info:
+        deep.write_json(out)
+    message = str(info.value)
+    assert "\n" not in message and str(out) in message and "not written" in message
+    assert list(tmp_path.iterdir()) == []
+
+    fits = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH - 1)})
+    assert load_results(fits.write_json(out)).paper == fits.paper
