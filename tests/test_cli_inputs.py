@@ -676,3 +676,36 @@ def test_the_library_s_own_messages_print_a_file_s_name_as_names_print(tmp_path)
     for exc, path in ((wrong, name), (beyond, name), (suffix, tmp_path / "s\x1bt.xyz")):
         text = str(exc.value)
         assert text.startswith(f"{shown(path)}: ") and "\n" not in text and "\x1b" not in text, text
+
+
+@pytest.mark.parametrize("name", ["a\\nb", "a\nb"])
+def test_a_stacks_series_and_a_results_domain_named_by_the_file_print_as_names_do(tmp_path, name):
+    """s53: read_stack's "/entry/data/NAME holds N values for M frames" and read_results'
+    "/results/enhanced/NAME is not a group" printed a name the file holds raw: a backslash read
+    as an escape, a newline broke the line. Each prints as names print, reading back as the name."""
+    import ast
+
+    from radiokit.errors import FormatError
+    from radiokit.io import StackWriter, read_results, read_stack
+    from radiokit.io._results import RESULTS_ENHANCED
+
+    stack = tmp_path / "s.h5"
+    with StackWriter(stack, (4, 4)) as w:
+        w.append(np.zeros((4, 4), np.float32))
+    with h5py.File(stack, "a") as f:
+        f["entry/data"][name] = np.zeros(3, np.int32)
+    with pytest.raises(FormatError) as info:
+        read_stack(stack)
+    said = re.search(r"('(?:[^'\\]|\\.)*') holds 3 values", str(info.value))
+    assert said and ast.literal_eval(said.group(1)) == f"/entry/data/{name}", str(info.value)
+
+    from test_hostile_inputs import _results_file
+
+    results = tmp_path / "results.h5"
+    _results_file(results)
+    with h5py.File(results, "a") as f:
+        f.require_group(RESULTS_ENHANCED)[name] = np.zeros(3)
+    with pytest.raises(FormatError) as info:
+        read_results(results)
+    said = re.search(r"('(?:[^'\\]|\\.)*') is not a group", str(info.value))
+    assert said and ast.literal_eval(said.group(1)) == f"/{RESULTS_ENHANCED}/{name}", str(info.value)

@@ -320,7 +320,9 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
             if name != ds.name.rsplit("/", 1)[1]:
                 s = checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
-                    raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
+                    # a name the file holds, as names print (s53)
+                    named = shown(f"/{STACK}/{name}")
+                    raise FormatError(path, f"{named} holds {s.shape[0]} values for {ds.shape[0]} frames")
                 series[name] = budget.read(s)
         meta = {k: _attr(path, k, v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
         return StackRecord(ds[()], series, meta)  # its bytes were counted first
