@@ -371,8 +371,24 @@ def _assumed_pitch(src) -> dict:
 def _escaped(value) -> str:
     """``value`` as text, its control characters escaped as Python writes them (``\\x00``, ``\\x1b``):
     a header comment's NUL or escape sequence reached the terminal raw (``ESC [31m`` turned the
-    rest of the output red)."""
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+    rest of the output red). A text value holding one, or a backslash, is quoted too, its
+    backslashes and quotes escaped, as :func:`radiokit._names.shown` prints a name: a TIFF's
+    Software tag ``HPD\\\\nTA`` printed as one holding a newline did (s53). Other values (a dict,
+    a list) print their texts' ``repr``, escaped already."""
+    text = str(value)
+    if isinstance(value, str) and ("\\" in text or not text.isprintable()):
+        escaped = (
+            "\\\\"
+            if c == "\\"
+            else "\\'"
+            if c == "'"
+            else c
+            if c.isprintable()
+            else c.encode("unicode_escape").decode("ascii")
+            for c in text
+        )
+        return "'" + "".join(escaped) + "'"
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 def cmd_info(args) -> int:

@@ -709,3 +709,23 @@ def test_a_stacks_series_and_a_results_domain_named_by_the_file_print_as_names_d
         read_results(results)
     said = re.search(r"('(?:[^'\\]|\\.)*') is not a group", str(info.value))
     assert said and ast.literal_eval(said.group(1)) == f"/{RESULTS_ENHANCED}/{name}", str(info.value)
+
+
+def test_info_prints_a_tiff_tags_backslash_apart_from_a_newline(tmp_path):
+    """s53: ``info`` printed a TIFF's Software tag ``HPD\\nTA`` (a backslash, then n) and one
+    holding a newline both as ``HPD\\nTA``: its control characters were escaped, its backslash not.
+    A text value a file holds prints by ``shown``'s rule: as it is when plain, else quoted and
+    escaped, reading back (``ast.literal_eval``) as the tag."""
+    import ast
+
+    tags = {"backslash": "HPD\\nTA", "newline": "HPD\nTA", "plain": "HPD-TA 9.5"}
+    printed = {}
+    for tag, software in tags.items():
+        tifffile.imwrite(tmp_path / f"{tag}.tif", np.zeros((4, 4), np.uint16), software=software)
+        res = run_cli("info", f"{tag}.tif", cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        (line,) = [ln for ln in res.stdout.splitlines() if ln.split()[:1] == ["Software"]]
+        said = line.split(None, 1)[1]
+        printed[tag] = said
+        assert (ast.literal_eval(said) if said.startswith("'") else said) == software, line
+    assert printed["plain"] == "HPD-TA 9.5" and len(set(printed.values())) == 3, printed
