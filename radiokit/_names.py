@@ -56,7 +56,15 @@ def controls_escaped(text) -> str:
     Why: a line a command prints of an error quotes what a file holds too, not only the names
     it was given (which :func:`shown` prints): a hostile HDF5 file's dataset named
     ``ESC]2;...BEL`` set the terminal's title from ``radiokit info``'s error line (review
-    s51rv2). Whitespace is left to the one line's folding."""
+    s51rv2). Whitespace is left to the one line's folding.
+
+    Not a backslash, unlike :func:`shown`: this escapes a whole message, which holds names
+    already printed as names print (``'a\\\\nb'``) and ``repr`` of a user's text, whose
+    backslashes are escapes already, and a second escape turned a newline's ``\\n`` into a
+    backslash's. A name the file holds (an HDF5 dataset's) is therefore printed by :func:`shown`
+    where the message names it: a dataset named ``a\\\\nb`` printed ``/a\\\\nb`` through this
+    alone, as a newline's escape reads, and one named ``a<newline>b`` as ``/a b`` (s53). This is the net
+    for a control character left in any other text a message quotes."""
     return "".join(
         c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in _HIDING and not c.isspace() else c
         for c in str(text)

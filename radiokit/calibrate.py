@@ -903,27 +903,29 @@ class Calibration:
             ``path`` exists (without ``overwrite``; a ``FileExistsError`` too), is a folder, is
             read-only or cannot be written, named in the message.
         """
-        if strict_json.too_deep(self.provenance):  # Calibration.load refuses it (s51): never written
-            from radiokit._names import shown
+        from radiokit._names import shown
 
-            where = f"{shown(path)}: " if isinstance(path, (str, os.PathLike)) else ""
-            raise ValueError(
-                f"{where}not written: the calibration's provenance nests deeper than {strict_json.MAX_DEPTH} "
-                "levels, which Calibration.load refuses"
-            )
+        # what Calibration.load refuses is never written: nested past its depth (s51), or longer
+        # than it reads (s53: the provenance of 30 000 files); judged before the file is made
+        where = shown(path) if isinstance(path, (str, os.PathLike)) else "the calibration"
+        texts = {
+            "thresholds": strict_json.dumps_readable(asdict(self.thresholds), where, "the calibration's thresholds"),
+            "provenance": strict_json.dumps_readable(self.provenance, where, "the calibration's provenance"),
+        }
         if not isinstance(path, (str, os.PathLike)):  # a file object: the caller places the bytes
             with h5py.File(path, "w") as h5:
-                self._write(h5.create_group(group))
+                self._write(h5.create_group(group), texts)
             return path
         from radiokit.io import atomic_h5
 
         path = Path(path)
         with atomic_h5(path, overwrite=overwrite) as h5:
-            self._write(h5.create_group(group))
+            self._write(h5.create_group(group), texts)
         return path
 
-    def _write(self, g) -> None:
-        """The calibration's datasets and attributes into the new HDF5 group ``g``."""
+    def _write(self, g, texts: dict) -> None:
+        """The calibration's datasets and attributes into the new HDF5 group ``g``; ``texts``:
+        its thresholds' and provenance's JSON."""
         g.attrs["NX_class"] = "NXcollection"
         for name in ("dark", "flat"):
             g.create_dataset(name, data=getattr(self, name), compression="gzip", shuffle=True).attrs["units"] = "counts"
@@ -932,8 +934,8 @@ class Calibration:
         g["defect_columns"] = self.defect_columns
         g.attrs["c"] = self.c
         # strict JSON (radiokit._json): a NaN current or noise is null, named in "not_finite"
-        g.attrs["thresholds"] = strict_json.dumps(asdict(self.thresholds))
-        g.attrs["provenance"] = strict_json.dumps(self.provenance)
+        g.attrs["thresholds"] = texts["thresholds"]
+        g.attrs["provenance"] = texts["provenance"]
         g.attrs["software"] = f"radiokit {__version__}"
 
     @classmethod

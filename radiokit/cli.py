@@ -353,11 +353,13 @@ def _assumed_pitch(src) -> dict:
     if meta.get("pixel_size_mm") is not None:
         return {}
     from radiokit._json import loads_record
+    from radiokit.results import MAX_JSON_BYTES
 
     text = src.hdf5_attribute(ENTRY, "results_json")
     try:
-        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52)
-        numbers = loads_record(text.decode() if isinstance(text, bytes) else text)
+        # past radiokit's depth (radiokit._json), or a pitch past float's range (10**400: s52);
+        # results.json's text, read at its bound: 4 MiB, a description's, skipped a long run's (s53)
+        numbers = loads_record(text.decode() if isinstance(text, bytes) else text, "results_json", MAX_JSON_BYTES)
         pitch = float(numbers["pixel_size_mm"]) * 1e3
     except (TypeError, ValueError, KeyError, AttributeError, OverflowError):  # not radiokit's JSON: say nothing
         return {}
@@ -369,8 +371,24 @@ def _assumed_pitch(src) -> dict:
 def _escaped(value) -> str:
     """``value`` as text, its control characters escaped as Python writes them (``\\x00``, ``\\x1b``):
     a header comment's NUL or escape sequence reached the terminal raw (``ESC [31m`` turned the
-    rest of the output red)."""
-    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+    rest of the output red). A text value holding one, or a backslash, is quoted too, its
+    backslashes and quotes escaped, as :func:`radiokit._names.shown` prints a name: a TIFF's
+    Software tag ``HPD\\\\nTA`` printed as one holding a newline did (s53). Other values (a dict,
+    a list) print their texts' ``repr``, escaped already."""
+    text = str(value)
+    if isinstance(value, str) and ("\\" in text or not text.isprintable()):
+        escaped = (
+            "\\\\"
+            if c == "\\"
+            else "\\'"
+            if c == "'"
+            else c
+            if c.isprintable()
+            else c.encode("unicode_escape").decode("ascii")
+            for c in text
+        )
+        return "'" + "".join(escaped) + "'"
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 def cmd_info(args) -> int:

@@ -10,6 +10,7 @@ defect fill plan touches only its pixels. Everything that does not depend on the
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import queue
 import sys
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from radiokit import _json as strict_json
 from radiokit._names import shown
 from radiokit._threads import pool, threads
 from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, frame_saturation
@@ -958,6 +960,28 @@ def _nothing_to_correct(headers, image_keys) -> str:
     return f"no {wanted} to correct" + (f"; only {kinds}" if kinds else "")
 
 
+#: The longest list of sources (as JSON text) a corrected stack names one by one: a quarter of
+#: what radiokit reads of a description (radiokit._json.MAX_CHARS), the rest left to the
+#: calibration's provenance beside it in a TIFF's one description. About 11 000 names of 90
+#: characters; past it, the list is summarised.
+SOURCES_LISTED_CHARS = strict_json.MAX_CHARS // 4
+
+
+def stack_meta(domain: str, provenance: dict, inputs) -> dict:
+    """The metadata :func:`correct_files` writes with its stack: the domain, the calibration's
+    provenance and the input files (``sources``, which the ``source_index`` column counts into).
+    A list whose JSON passes :data:`SOURCES_LISTED_CHARS` is summarised:
+    ``{"count", "first", "last", "sha256"}``, the digest of the names' bytes each ended by NUL
+    but the last (no path holds one; a newline, a path can). Why: 50 000 projection files, one
+    per TIFF, are 4.6 MB of names, past what radiokit reads back, and the stack's description
+    and ``sources`` were kept as text by its own readers (s53)."""
+    names = [str(p) for p in inputs]
+    if len(strict_json.dumps(names)) > SOURCES_LISTED_CHARS:
+        digest = hashlib.sha256(b"\0".join(os.fsencode(n) for n in names)).hexdigest()
+        names = {"count": len(names), "first": names[0], "last": names[-1], "sha256": digest}
+    return {"domain": domain, "calibration": provenance, "sources": names}
+
+
 def correct_files(
     inputs, cal: Calibration, output, *, domain="log", progress=True, image_keys=(0,), overwrite=False, **hints
 ) -> dict:
@@ -968,7 +992,10 @@ def correct_files(
     default) are corrected; other formats have no keys and every frame is. The HDF5 output
     records, per frame, the source file and frame index, the compression step where known, and
     the saturated (:data:`NOT_CHECKED`, -1, where not checked) and non-positive counts, and the calibration's defect map (the pixels filled in
-    every frame) as ``/entry/instrument/detector/pixel_mask``. Returns a summary dict.
+    every frame) as ``/entry/instrument/detector/pixel_mask``; its metadata (a TIFF's description)
+    names the domain, the calibration's provenance and the input files, ``sources``, which
+    ``source_index`` counts into (:func:`stack_meta`: past about 11 000 files, a count and a
+    digest). Returns a summary dict.
 
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
@@ -986,7 +1013,7 @@ def correct_files(
         raise ValueError(f"{', '.join(map(shown, inputs))}: {_nothing_to_correct(headers, image_keys)}")
     sources = _OneOpen(inputs, headers, hints)
     try:
-        meta = {"domain": domain, "calibration": cal.provenance, "sources": [str(p) for p in inputs]}
+        meta = stack_meta(domain, cal.provenance, inputs)
         t0 = time.perf_counter()
         sat_total = np_total = over_total = unchecked = 0
         with (

@@ -66,7 +66,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from radiokit._json import strict as strict_json
+from radiokit._json import dumps_readable
 from radiokit._names import shown
 from radiokit.checks import is_number, scalar, toml_loads
 from radiokit.enhance import Domain
@@ -1362,6 +1362,7 @@ def _control(cfg: Config, rois: RoiChoice, out_dir: Path) -> Results | None:
 def _write(out_dir, record: Results, images: Images, cfg, t0):
     from radiokit.io import EnhancedImages, ResultsRecord, write_results
     from radiokit.report import draw_figures, write_page
+    from radiokit.results import MAX_JSON_BYTES
 
     files = {}
     figures = None
@@ -1380,7 +1381,8 @@ def _write(out_dir, record: Results, images: Images, cfg, t0):
         h5path,
         ResultsRecord(
             source=record.source,
-            results_json=json.dumps(strict_json(record.to_json()), allow_nan=False),  # inf/NaN: null, named
+            # inf/NaN: null, named; refused unwritten where results.json's reader would refuse it
+            results_json=dumps_readable(record.to_json(), shown(h5path), "results.json", MAX_JSON_BYTES),
             line_integral=images.steps,
             step=np.asarray(record.steps),
             ratio=np.asarray(record.ratios, float),

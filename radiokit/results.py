@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radiokit._json import Refused, loads_checked, restore, strict
+from radiokit._json import Refused, dumps_readable, loads_checked, restore
 from radiokit.checks import is_integer, is_number
 from radiokit.enhance import Domain
 from radiokit.errors import FormatError
@@ -475,8 +475,13 @@ class Results:
         )
 
     def write_json(self, path) -> Path:
+        """Write results.json; refused (ValueError naming ``path``) before the file, where
+        :func:`load_results` would refuse it back: nested past radiokit's depth (a caller's
+        ``paper``) or past :data:`MAX_JSON_BYTES` (s53: written, then refused by its reader)."""
+        from radiokit._names import shown
+
         path = Path(path)
-        path.write_text(json.dumps(strict(self.to_json()), indent=1, allow_nan=False))
+        path.write_text(dumps_readable(self.to_json(), shown(path), "results.json", MAX_JSON_BYTES, indent=1))
         return path
 
 

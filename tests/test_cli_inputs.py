@@ -4,6 +4,7 @@ characters. Real files (tifffile, h5py) written to ``tmp_path``, run through ``m
 
 import json
 import os
+import re
 import subprocess
 import sys
 from datetime import UTC, datetime
@@ -500,6 +501,48 @@ def test_a_files_own_text_with_control_characters_never_reaches_the_terminal_raw
         assert "x\\x1b]2;pwn\\x07y" in line, line  # escaped, still naming the dataset
 
 
+@pytest.mark.parametrize("shape", [(2, 8, 8), (4,)])
+def test_a_files_own_name_with_a_backslash_prints_apart_from_one_with_a_newline(tmp_path, shape):
+    """s53: a dataset named ``a\\nb`` (a backslash, then n) printed ``/a\\nb`` in the error line,
+    as a newline's escape reads, and one named ``a<newline>b`` printed ``/a b``, as a space's. A
+    name a file holds prints as a file name does (``shown``): as it is when plain, else quoted
+    and escaped, reading back (``ast.literal_eval``) as the name: three names, three lines."""
+    import ast
+
+    names = {"backslash": "a\\nb", "newline": "a\nb", "space": "a b"}
+    printed = {}
+    for tag, name in names.items():
+        _write_h5(tmp_path / f"{tag}.h5", name, np.zeros(shape, np.uint16))
+        args = ("info", f"{tag}.h5") if len(shape) == 3 else ("info", "--dataset", name, f"{tag}.h5")
+        res = run_cli(*args, cwd=tmp_path)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        (line,) = res.stderr.splitlines()
+        assert line.startswith(f"radiokit info: {tag}.h5: "), line
+        found = re.search(r"('(?:[^'\\]|\\.)*'|/a b|a b)( \(2x8x8 uint16\)| has shape)", line)
+        assert found, line
+        said = found.group(1)
+        assert (ast.literal_eval(said) if said.startswith("'") else said).lstrip("/") == name, line
+        printed[tag] = line.replace(f"{tag}.h5", "FILE")
+    assert len(set(printed.values())) == 3, printed
+
+
+def test_an_external_links_names_print_as_names_do(tmp_path):
+    """s53: an external link's own name and the file and path it points at are a file's text too:
+    a link ``a\\nb`` to ``x<newline>y.h5`` printed ``/a\\nb is an external link to x y.h5:/d``,
+    the backslash as a newline's escape and the newline as a space. Each prints as names print."""
+    import ast
+
+    with h5py.File(tmp_path / "link.h5", "w") as f:
+        f["a\\nb"] = h5py.ExternalLink("x\ny.h5", "/d\\e")
+    res = run_cli("info", "--dataset", "a\\nb", "link.h5", cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = res.stderr.splitlines()
+    found = re.search(r"('(?:[^'\\]|\\.)*') is an external link to ('(?:[^'\\]|\\.)*')", line)
+    assert found, line
+    assert ast.literal_eval(found.group(1)) == "/a\\nb", line
+    assert ast.literal_eval(found.group(2)) == "x\ny.h5:/d\\e", line
+
+
 # ------------------------------------------------------------------------------------------------
 # 5. an 8-bit and a 16-bit copy of one image registered
 # ------------------------------------------------------------------------------------------------
@@ -657,3 +700,56 @@ def test_the_library_s_own_messages_print_a_file_s_name_as_names_print(tmp_path)
     for exc, path in ((wrong, name), (beyond, name), (suffix, tmp_path / "s\x1bt.xyz")):
         text = str(exc.value)
         assert text.startswith(f"{shown(path)}: ") and "\n" not in text and "\x1b" not in text, text
+
+
+@pytest.mark.parametrize("name", ["a\\nb", "a\nb"])
+def test_a_stacks_series_and_a_results_domain_named_by_the_file_print_as_names_do(tmp_path, name):
+    """s53: read_stack's "/entry/data/NAME holds N values for M frames" and read_results'
+    "/results/enhanced/NAME is not a group" printed a name the file holds raw: a backslash read
+    as an escape, a newline broke the line. Each prints as names print, reading back as the name."""
+    import ast
+
+    from radiokit.errors import FormatError
+    from radiokit.io import StackWriter, read_results, read_stack
+    from radiokit.io._results import RESULTS_ENHANCED
+
+    stack = tmp_path / "s.h5"
+    with StackWriter(stack, (4, 4)) as w:
+        w.append(np.zeros((4, 4), np.float32))
+    with h5py.File(stack, "a") as f:
+        f["entry/data"][name] = np.zeros(3, np.int32)
+    with pytest.raises(FormatError) as info:
+        read_stack(stack)
+    said = re.search(r"('(?:[^'\\]|\\.)*') holds 3 values", str(info.value))
+    assert said and ast.literal_eval(said.group(1)) == f"/entry/data/{name}", str(info.value)
+
+    from test_hostile_inputs import _results_file
+
+    results = tmp_path / "results.h5"
+    _results_file(results)
+    with h5py.File(results, "a") as f:
+        f.require_group(RESULTS_ENHANCED)[name] = np.zeros(3)
+    with pytest.raises(FormatError) as info:
+        read_results(results)
+    said = re.search(r"('(?:[^'\\]|\\.)*') is not a group", str(info.value))
+    assert said and ast.literal_eval(said.group(1)) == f"/{RESULTS_ENHANCED}/{name}", str(info.value)
+
+
+def test_info_prints_a_tiff_tags_backslash_apart_from_a_newline(tmp_path):
+    """s53: ``info`` printed a TIFF's Software tag ``HPD\\nTA`` (a backslash, then n) and one
+    holding a newline both as ``HPD\\nTA``: its control characters were escaped, its backslash not.
+    A text value a file holds prints by ``shown``'s rule: as it is when plain, else quoted and
+    escaped, reading back (``ast.literal_eval``) as the tag."""
+    import ast
+
+    tags = {"backslash": "HPD\\nTA", "newline": "HPD\nTA", "plain": "HPD-TA 9.5"}
+    printed = {}
+    for tag, software in tags.items():
+        tifffile.imwrite(tmp_path / f"{tag}.tif", np.zeros((4, 4), np.uint16), software=software)
+        res = run_cli("info", f"{tag}.tif", cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        (line,) = [ln for ln in res.stdout.splitlines() if ln.split()[:1] == ["Software"]]
+        said = line.split(None, 1)[1]
+        printed[tag] = said
+        assert (ast.literal_eval(said) if said.startswith("'") else said) == software, line
+    assert printed["plain"] == "HPD-TA 9.5" and len(set(printed.values())) == 3, printed

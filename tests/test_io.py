@@ -447,6 +447,29 @@ def test_itex_comment_length_off_by_a_few_bytes_is_refused(tmp_path, name, chang
     assert len([line for line in res.stderr.splitlines() if line.strip()]) == 1, res.stderr
 
 
+@needs_itex
+@pytest.mark.parametrize("name", ["focus_mode.img", "photon_counting.img", "xaxis_other.img"])
+@pytest.mark.parametrize("cut", ["none", "last section"])
+def test_itex_comment_length_that_leaves_comment_text_as_pixels_is_refused(tmp_path, name, cut):
+    """s53: a header's comment length of 0 (zeroed), or one ending where a section begins, leaves
+    no quoted value cut and no [Scaling] pointer read, so nothing disagreed: the comment's text was
+    read as the first pixels (focus_mode's 0..39173 came out 0..2053730927) and ``correct`` wrote
+    a stack of it. Pixels that begin with a comment's section (``[Application],Date=``) are
+    refused in one line naming the file."""
+    raw = bytearray((ITEX_DIR / name).read_bytes())
+    length = struct.unpack_from("<H", raw, 2)[0]
+    comment = bytes(raw[64 : 64 + length])
+    new = 0 if cut == "none" else comment.rindex(b"\r\n[") + 2  # the last section's "[" starts the pixels
+    assert comment[new : new + 1] == b"["
+    struct.pack_into("<H", raw, 2, new)
+    path = tmp_path / name
+    path.write_bytes(bytes(raw))
+    _raises_format(path, "comment")
+    res = run_cli("info", path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr and str(path) in res.stderr, res.stderr
+    assert len([line for line in res.stderr.splitlines() if line.strip()]) == 1, res.stderr
+
+
 def test_itex_stray_quote_in_a_comment_of_the_right_length_still_reads(tmp_path):
     """A quote typed into a user's comment leaves an odd count, but the comment still ends as
     HPD-TA ends it: no sign of a wrong length, read as before; cut inside its last value, refused."""

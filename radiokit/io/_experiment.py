@@ -1367,13 +1367,17 @@ def check_links(path, h5, name, allow_external, depth=0):
             return
         if isinstance(link, h5py.ExternalLink):
             if not allow_external:
-                _refuse_external(path, f"{prefix} is an external link to {link.filename}:{link.path}")
+                # names the file holds, as names print (s53: "a\\nb" read as a newline's escape)
+                target = shown(f"{link.filename}:{link.path}")
+                _refuse_external(path, f"{shown(prefix)} is an external link to {target}")
             try:
                 h5[prefix]
             except (KeyError, OSError) as exc:
                 why = str(exc).split("(", 1)[-1].rstrip(")\"' ") or "not found"
                 raise FormatError(
-                    path, f"{prefix} is an external link to {link.filename}:{link.path}, which cannot be opened ({why})"
+                    path,
+                    f"{shown(prefix)} is an external link to {shown(f'{link.filename}:{link.path}')}, which cannot be "
+                    f"opened ({why})",
                 ) from None
             return  # beyond it lies another file, whose own links are its own
         if isinstance(link, h5py.SoftLink) and depth < 8:
@@ -1386,22 +1390,22 @@ def check_local(path, h5, ds, allow_external=False) -> None:
     if allow_external:
         return
     if ds.file.filename != h5.filename:
-        _refuse_external(path, f"{ds.name} lives in another file ({ds.file.filename})")
+        _refuse_external(path, f"{shown(ds.name)} lives in another file ({shown(ds.file.filename)})")
     if ds.is_virtual:
         sources = ds.virtual_sources()
         if sources and all(src.file_name == "." for src in sources):  # "." is libhdf5's "this file"
             # not "in other files": the user went looking for files that do not exist
             names = sorted({src.dset_name for src in sources})
-            listed = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            listed = ", ".join(map(shown, names[:3])) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
             raise FormatError(
                 path,
-                f"{ds.name} is a virtual dataset mapping {listed} of this file: virtual datasets are not read "
+                f"{shown(ds.name)} is a virtual dataset mapping {listed} of this file: virtual datasets are not read "
                 f"{EXTERNAL_ADVICE}, or read the source dataset itself",
                 advice={"allow_external": EXTERNAL_ADVICE},
             )
-        _refuse_external(path, f"{ds.name} is a virtual dataset (its data are in other files)")
+        _refuse_external(path, f"{shown(ds.name)} is a virtual dataset (its data are in other files)")
     if ds.id.get_create_plist().get_external_count():
-        _refuse_external(path, f"{ds.name} is stored in external raw files")
+        _refuse_external(path, f"{shown(ds.name)} is stored in external raw files")
 
 
 #: the variables through which libhdf5 resolves a relative name, by what the name is (a
@@ -1649,14 +1653,16 @@ def _found_source(path, ds, folder: Path, name: str, dset: str, real: Path | Non
     cannot be opened or holds no dataset ``dset``."""
     found = next((p for p in _source_places(folder, name, real=real) if p.is_file()), None)
     if found is None:
-        raise FormatError(path, f"{ds.name} is a virtual dataset whose source file {name} is missing")
+        raise FormatError(path, f"{shown(ds.name)} is a virtual dataset whose source file {shown(name)} is missing")
     try:
         with h5py.File(found, "r") as src:
             present = isinstance(src.get(dset), h5py.Dataset)
     except OSError as exc:
-        raise FormatError(path, f"{ds.name}: its virtual source {found} cannot be opened: {exc}") from None
+        raise FormatError(
+            path, f"{shown(ds.name)}: its virtual source {shown(found)} cannot be opened: {exc}"
+        ) from None
     if not present:
-        raise FormatError(path, f"{ds.name}: its virtual source {found} holds no dataset {dset}")
+        raise FormatError(path, f"{shown(ds.name)}: its virtual source {shown(found)} holds no dataset {shown(dset)}")
     return found
 
 
@@ -1697,10 +1703,11 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
     axis = axes[0]
     extent = ds.shape[axis]
     covered = max(0, -(-(extent - start[axis]) // max(stride[axis], 1)))
-    missing = f"{expand(name, covered)}:{expand(dset, covered)}"
+    missing = shown(f"{expand(name, covered)}:{expand(dset, covered)}")
     if not covered:
         raise FormatError(
-            path, f"{ds.name} is a virtual dataset whose first source {missing} is missing or unreadable: no frames"
+            path,
+            f"{shown(ds.name)} is a virtual dataset whose first source {missing} is missing or unreadable: no frames",
         )
     folders = {
         resolved(_found_source(path, ds, folder, expand(name, k), expand(dset, k), real).parent) for k in range(covered)
@@ -1708,8 +1715,8 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
     if len(folders) > 1:
         raise FormatError(
             path,
-            f"{ds.name} is a virtual dataset whose sources {name} were found in {len(folders)} folders "
-            f"({', '.join(sorted(map(str, folders)))}): libhdf5 looks beside the file, then in the working "
+            f"{shown(ds.name)} is a virtual dataset whose sources {shown(name)} were found in {len(folders)} folders "
+            f"({', '.join(sorted(map(shown, folders)))}): libhdf5 looks beside the file, then in the working "
             "directory, so the series is mixed with another one's files; run from another folder",
         )
     tokens = re.split(r"(%%|%b)", Path(name).name)
@@ -1729,9 +1736,9 @@ def _check_block_sources(path, ds, source, folder: Path, real: Path | None = Non
     if later:
         raise FormatError(
             path,
-            f"{ds.name} is a virtual dataset read short: libhdf5 stops at the first source it cannot read, "
+            f"{shown(ds.name)} is a virtual dataset read short: libhdf5 stops at the first source it cannot read, "
             f"{missing} (source {covered}), so its stack ends after {covered} block(s) although "
-            f"{expand(Path(name).name, min(later))} is there",
+            f"{shown(expand(Path(name).name, min(later)))} is there",
         )
 
 
@@ -1747,7 +1754,8 @@ def checked_dataset(
     """
     check_links(path, h5, name, allow_external)
     ds = h5.get(name)
-    named = "/" + name.lstrip("/")  # a user's --dataset /entry/data came out "//entry/data"
+    # a user's --dataset /entry/data came out "//entry/data"; a name as names print (s53)
+    named = shown("/" + name.lstrip("/"))
     if not isinstance(ds, h5py.Dataset):
         raise FormatError(path, f"{named} is not a dataset")
     check_local(path, h5, ds, allow_external)
@@ -1795,7 +1803,7 @@ def check_filters(path, ds) -> None:
         code, name = missing[0]
         raise FormatError(
             path,
-            f"{ds.name} is compressed with HDF5 filter {code} ({name.decode('latin-1') or 'unnamed'}), "
+            f"{shown(ds.name)} is compressed with HDF5 filter {code} ({name.decode('latin-1') or 'unnamed'}), "
             "which is not available here: install hdf5plugin (pip install hdf5plugin)",
         )
 
@@ -1829,7 +1837,7 @@ def check_proportion_of(path, ds, budget=None, frames=None, index=None) -> None:
     if isinstance(ds, list):
         what = f"{' and '.join(d.name for d in ds)}, read together,"
     else:
-        what = f"{ds.name} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
+        what = f"{shown(ds.name)} ({'x'.join(map(str, ds.shape))} {ds.dtype})"
         what = f"frame {index} of {what}" if index is not None and ds.ndim >= 3 else what
     frame = min(frame, decoded)
     check_proportion(path, what, decoded, frame, stored_extent(ranges), "+".join(codecs), budget)
@@ -1906,7 +1914,7 @@ def check_written(path, ds, spare_bytes: int = 0) -> None:
     chunk = math.prod(ds.chunks) * ds.dtype.itemsize if ds.chunks else 0
     if stored and (ratio is None or stored * ratio + chunk + spare_bytes + 4096 >= declared):
         return
-    what = f"{ds.name} declares {'x'.join(map(str, ds.shape))} {ds.dtype} ({declared} bytes)"
+    what = f"{shown(ds.name)} declares {'x'.join(map(str, ds.shape))} {ds.dtype} ({declared} bytes)"
     if not stored:
         raise FormatError(
             path, f"{what} but stores nothing: never written (it would read as its fill value); incomplete or corrupt"
@@ -1930,7 +1938,7 @@ def check_frame_written(path, ds, index: int) -> None:
     if ds.id.get_chunk_info_by_coord(coord).byte_offset is None:
         raise FormatError(
             path,
-            f"frame {index} of {ds.name} was never written (no storage allocated: it would read as the "
+            f"frame {index} of {shown(ds.name)} was never written (no storage allocated: it would read as the "
             "fill value); incomplete or corrupt",
         )
 
@@ -2094,9 +2102,9 @@ def _read_source(path, h5: h5py.File, meta: dict, allow_external: bool) -> None:
         meta["source"][key] = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
 
 
-def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
+def frame_candidates(h5: h5py.Group, most=4) -> str | None:
     """Where the frames of a file of another layout may be: the 2-D and 3-D datasets of numbers in
-    ``h5`` (a file or a group), largest first, ``shown`` at most ("/a (3x20x24 uint16), ... and 3
+    ``h5`` (a file or a group), largest first, ``most`` at most ("/a (3x20x24 uint16), ... and 3
     more"; "" when there are none; None when the file cannot be looked through), for a refusal that
     asks for ``--dataset`` (the user otherwise needs another tool to find the path). External links
     (a detector's master file linking its data files) are listed after them, with the file each
@@ -2106,7 +2114,9 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
     def visit(name, obj):
         seen[0] += 1
         if isinstance(obj, h5py.Dataset) and obj.ndim in (2, 3) and obj.dtype.kind in "buif":
-            found.append((obj.size, f"{obj.name} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"))
+            # a name the file holds, as names print (s53: "a\\nb" printed as a newline's escape)
+            what = f"{shown(obj.name)} ({'x'.join(map(str, obj.shape))} {obj.dtype.newbyteorder('=')})"
+            found.append((obj.size, what))
         if seen[0] >= 10_000:  # a file of many objects: a look, not a survey
             cut.append(True)
             return True
@@ -2117,7 +2127,7 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
     def visit_link(name, link):
         seen[1] += 1
         if isinstance(link, h5py.ExternalLink):
-            linked.append(f"{h5.name.rstrip('/')}/{name} (in {link.filename})")
+            linked.append(f"{shown(h5.name.rstrip('/') + '/' + name)} (in {shown(link.filename)})")
         if seen[1] >= 10_000:
             cut.append(True)
             return True
@@ -2135,11 +2145,11 @@ def frame_candidates(h5: h5py.Group, shown=4) -> str | None:
         linked.sort()
         found += [(-1, text) for text in linked]
     if cut:  # the look stopped short: how many more is not known
-        more = f" and {'more' if len(found) <= shown else f'at least {len(found) - shown} more'}"
+        more = f" and {'more' if len(found) <= most else f'at least {len(found) - most} more'}"
     else:
-        more = f" and {len(found) - shown} more" if len(found) > shown else ""
+        more = f" and {len(found) - most} more" if len(found) > most else ""
     outside = f"; a link into another file is not read {EXTERNAL_ADVICE}" if linked else ""
-    return ", ".join(text for _, text in found[:shown]) + more + outside
+    return ", ".join(text for _, text in found[:most]) + more + outside
 
 
 def _not_an_experiment(path, h5: h5py.File) -> FormatError:

@@ -15,7 +15,15 @@ import numpy as np
 
 from radiokit.errors import FormatError
 
-__all__ = ["parse_itex_header", "parse_comment", "check_comment_end", "check_tail", "adc_bits", "ITEX_TYPES"]
+__all__ = [
+    "parse_itex_header",
+    "parse_comment",
+    "check_comment_end",
+    "check_pixels_start",
+    "check_tail",
+    "adc_bits",
+    "ITEX_TYPES",
+]
 
 # The comment length is unsigned: HiPic writes comments over 32767 bytes (read signed, a valid
 # 40 000-byte one was "negative"); width and height stay signed, a negative one is corrupt.
@@ -234,6 +242,25 @@ def check_comment_end(path, geo: dict, text: str) -> None:
             path,
             f"ITEX comment of {geo['comment_length']} bytes (the header's length) ends inside a quoted value: "
             "the header's comment length disagrees with the text (pixels read after it would be shifted); not read",
+        )
+
+
+#: A comment's section as HPD-TA starts each (``[Application],Enconding=``): eight or more bytes
+#: of a fixed shape that no panel's pixels form.
+_SECTION = re.compile(rb"\[[A-Za-z][A-Za-z ]{0,30}\],[A-Za-z_]+=")
+
+
+def check_pixels_start(path, geo: dict, first: bytes) -> None:
+    """Refuse pixels whose first bytes (``first``) begin a comment's section: the header's comment
+    length ends before the comment does, at a section's start (0, zeroed; or cut at a line), where
+    no quoted value is cut (:func:`check_comment_end`) and the [Scaling] pointer, in the text left
+    out, is never read (:func:`check_tail`). Why: focus_mode.img's comment length zeroed read its
+    comment as the first pixels, 0..39173 as 0..2053730927, and ``correct`` wrote a stack of it (s53)."""
+    if _SECTION.match(first):
+        raise FormatError(
+            path,
+            f"ITEX pixels begin with comment text ({first[:16].decode('latin-1')!r}...): the header's comment "
+            f"length ({geo['comment_length']} bytes) ends before the comment does; not read",
         )
 
 

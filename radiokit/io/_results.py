@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import h5py
 import numpy as np
 
+from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._atomic import atomic_h5
 from radiokit.io._experiment import ENTRY, check_links, checked_dataset
@@ -188,7 +189,7 @@ def read_results(path, *, allow_external=False) -> ResultsRecord:
         for domain in groups[RESULTS_ENHANCED] or {}:
             g = f"{RESULTS_ENHANCED}/{domain}"
             if not isinstance(h5[g], h5py.Group):
-                raise FormatError(path, f"/{g} is not a group")
+                raise FormatError(path, f"{shown('/' + g)} is not a group")  # a name the file holds (s53)
             ks = {name[1:]: array(f"{g}/{name}") for name in h5[g] if name.startswith("k")}
             enhanced[domain] = EnhancedImages(array(f"{g}/reference"), array(f"{g}/difference"), ks)
         attrs = h5[ENTRY].attrs

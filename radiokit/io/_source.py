@@ -43,6 +43,7 @@ from radiokit.io._itex import (
     HEADER_BYTES,
     adc_bits,
     check_comment_end,
+    check_pixels_start,
     check_tail,
     parse_comment,
     parse_itex_header,
@@ -389,6 +390,7 @@ class FrameSource:
         geo = parse_itex_header(self.path, head, size)
         comment = self._fh.read(geo["comment_length"]).decode("latin-1").rstrip("\0")
         check_comment_end(self.path, geo, comment)
+        check_pixels_start(self.path, geo, self._fh.read(64))  # (frames and axes are read by their offsets)
         parsed = parse_comment(comment)
         check_tail(self.path, geo, parsed)
         self._geo = geo
@@ -1661,7 +1663,7 @@ class FrameSource:
                 raise self._no_dataset(dataset)
             if self._h5[dataset].ndim not in (2, 3):
                 raise FormatError(
-                    self.path, f"{dataset} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
+                    self.path, f"{shown(dataset)} has shape {self._h5[dataset].shape}; expected 2 or 3 dimensions"
                 )
             # its storage checked below, once the frames to be read are known
             data = self._checked(dataset, "buif", (2, 3), written=False)

@@ -104,6 +104,9 @@ class StackWriter:
         suffix = self.path.suffix.lower()
         if suffix not in (".h5", ".hdf5", ".nxs", ".tif", ".tiff"):
             raise ValueError(f"{shown(self.path)}: output must end in .h5/.hdf5/.nxs or .tif/.tiff")
+        # the metadata's JSON as written, judged before the file is made: never what read_stack
+        # or a TIFF's reader would refuse back (radiokit._json.dumps_readable)
+        self._meta_json = self._meta_texts(suffix)
         frame_bytes = int(np.prod(self.frame_shape)) * self.dtype.itemsize
         self._atomic = atomic_path(
             self.path,
@@ -119,6 +122,22 @@ class StackWriter:
             if isinstance(exc, OSError) and exc.errno:  # h5py's text names the temporary file
                 raise OutputError(self.path, f"cannot be written: {os.strerror(exc.errno)}", exc.errno) from exc
             raise
+
+    def _meta_texts(self, suffix) -> dict:
+        """The JSON text of each of ``meta``'s dicts and lists (HDF5: an attribute each), or of
+        the whole ``meta`` (TIFF: the first page's description, key None)."""
+        where = shown(self.path)
+        tiff = suffix in (".tif", ".tiff")
+        texts = {  # each part first: a refusal names the one past the bound
+            key: strict_json.dumps_readable(value, where, f"its {'description' if tiff else 'meta'}'s {key!r}")
+            for key, value in self.meta.items()
+            if isinstance(value, (dict, list, tuple))
+        }
+        if tiff:
+            return (
+                {None: strict_json.dumps_readable(self.meta, where, "its description (the meta)")} if self.meta else {}
+            )
+        return texts
 
     def _open(self, tmp, suffix, n_frames, bigtiff):
         self.kind = "hdf5" if suffix in (".h5", ".hdf5", ".nxs") else "tiff"
@@ -137,7 +156,7 @@ class StackWriter:
             grp.attrs["signal"] = STACK_FRAMES.rsplit("/", 1)[1]
             for key, value in self.meta.items():
                 # strict JSON (radiokit._json): a non-finite number is null, named in "not_finite"
-                grp.attrs[key] = strict_json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+                grp.attrs[key] = self._meta_json.get(key, value)
             self._write_pixel_mask(entry)
             self._alloc = int(n_frames or 0)
             dcpl = None
@@ -211,7 +230,7 @@ class StackWriter:
                 ds[i] = value
             self._h5.flush()
         else:
-            desc = strict_json.dumps(self.meta) if self.n == 0 and self.meta else None
+            desc = self._meta_json.get(None) if self.n == 0 else None
             self._tif.write(frame.astype(self.dtype, copy=False), contiguous=False, description=desc, metadata=None)
         self.n += 1
 
@@ -301,7 +320,9 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
             if name != ds.name.rsplit("/", 1)[1]:
                 s = checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
-                    raise FormatError(path, f"/{STACK}/{name} holds {s.shape[0]} values for {ds.shape[0]} frames")
+                    # a name the file holds, as names print (s53)
+                    named = shown(f"/{STACK}/{name}")
+                    raise FormatError(path, f"{named} holds {s.shape[0]} values for {ds.shape[0]} frames")
                 series[name] = budget.read(s)
         meta = {k: _attr(path, k, v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
         return StackRecord(ds[()], series, meta)  # its bytes were counted first

@@ -1,0 +1,152 @@
+"""radiokit never writes JSON it refuses to read back (radiokit._json: 4 MiB, 32 levels).
+
+Each writer of a record is written at its largest and read back: a corrected stack's sources are
+listed while short and summarised (a count and a digest) when long, so a 50 000-file stack reads
+back as a record; a record that would still pass the bound (a calibration's provenance of
+thousands of files) is refused in one line before any file is made.
+"""
+
+import hashlib
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from radiokit import _json as strict_json
+from radiokit.calibrate import Calibration
+from radiokit.io import StackWriter, read, read_stack
+
+#: a path as a scan names its projection files (~110 characters): 50 000 of them are ~5.7 MB of JSON
+_NAME = "/data/beamtime-2026-12/scans/2026-12-07/sample-042_compression-series/projections/proj_{:05d}_0.100s_40kV.tif"
+
+
+def _names(n):
+    return [_NAME.format(i) for i in range(n)]
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_a_corrected_stack_of_50000_sources_reads_back_as_its_record(tmp_path, suffix):
+    """The meta ``correct`` writes for 50 000 files (one TIFF per projection) reads back as a
+    record, not text refused past the bound: the list summarised, its digest the names'."""
+    from radiokit.correct import stack_meta
+
+    names = _names(50_000)
+    assert len(strict_json.dumps(names)) > strict_json.MAX_CHARS  # the case is past the bound
+    meta = stack_meta("log", {"n_darks": 1}, names)
+    out = tmp_path / f"c{suffix}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # "kept as text" is the failure
+        with StackWriter(out, (4, 4), meta=meta) as w:
+            w.append(np.zeros((4, 4), np.float32))
+        if suffix == ".h5":
+            back = read_stack(out).meta
+        else:
+            back = read(out).meta["description"]
+    sources = back["sources"]
+    assert sources["count"] == 50_000
+    assert sources["first"] == names[0] and sources["last"] == names[-1]
+    assert sources["sha256"] == hashlib.sha256(b"\0".join(os.fsencode(n) for n in names)).hexdigest()
+    assert back["calibration"] == {"n_darks": 1} and back["domain"] == "log"
+
+
+def test_a_short_source_list_is_kept_as_the_names():
+    from radiokit.correct import stack_meta
+
+    assert stack_meta("log", {}, _names(3))["sources"] == _names(3)
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".tif"])
+def test_a_stack_whose_meta_would_not_read_back_is_refused_before_any_file(tmp_path, suffix):
+    """StackWriter given meta past the bound (a caller's own) refuses in one line naming the
+    output, before its file exists: it wrote it, and read_stack then kept it as text."""
+    out = tmp_path / f"s{suffix}"
+    with pytest.raises(ValueError) as info:
+        StackWriter(out, (4, 4), meta={"sources": _names(50_000)})
+    message = str(info.value)
+    assert "\n" not in message and str(out) in message and "sources" in message
+    assert "not written" in message and str(strict_json.MAX_CHARS) in message
+    assert list(tmp_path.iterdir()) == []
+
+
+def _calibration(n_inputs):
+    rng = np.random.default_rng(1)
+    cal = Calibration.from_frames(
+        rng.normal(100, 2, (3, 8, 8)).astype(np.float32), rng.normal(1000, 10, (3, 8, 8)).astype(np.float32)
+    )
+    record = {"path": "", "resolved": "", "format": "tiff", "dataset": None, "option": None, "darks": 1, "flats": 0}
+    cal.provenance["inputs"] = [record | {"path": n, "resolved": n} for n in _names(n_inputs)]
+    return cal
+
+
+def test_a_calibration_whose_provenance_would_not_read_back_is_refused_unwritten(tmp_path):
+    """A provenance past the bound (30 000 files) is refused at save, naming the file; the
+    largest under it (one of 12 000, 3.9 MB) is written and loads as it was."""
+    big = _calibration(30_000)
+    assert len(strict_json.dumps(big.provenance)) > strict_json.MAX_CHARS
+    out = tmp_path / "cal.h5"
+    with pytest.raises(ValueError) as info:
+        big.save(out)
+    message = str(info.value)
+    assert "\n" not in message and str(out) in message and "not written" in message and "provenance" in message
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+    largest = _calibration(12_000)
+    assert len(strict_json.dumps(largest.provenance)) > strict_json.MAX_CHARS * 9 // 10
+    largest.save(out)
+    assert Calibration.load(out).provenance["inputs"] == largest.provenance["inputs"]
+
+
+def test_results_h5_holds_its_results_json_read_at_the_results_json_bound(tmp_path):
+    """results.h5 embeds results.json's text, read by results.json's own bound (64 MiB), not a
+    description's 4 MiB: the numbers of a run of 250 000 ratios (4.8 MB) were skipped by ``info``,
+    which then said nothing of the pitch the run assumed."""
+    from conftest import run_cli
+
+    from radiokit.io import ResultsRecord, write_results
+    from radiokit.results import MAX_JSON_BYTES
+
+    ratios = [i / 7 for i in range(250_000)]
+    numbers = {"schema_version": "1.4", "pixel_size_mm": 0.05, "pixel_size_recorded": False, "ratios": ratios}
+    text = strict_json.dumps_readable(numbers, "results.h5", "results.json", MAX_JSON_BYTES)
+    assert strict_json.MAX_CHARS < len(text) < MAX_JSON_BYTES
+    path = tmp_path / "results.h5"
+    record = ResultsRecord(
+        source="exp.h5",
+        results_json=text,
+        line_integral=np.zeros((2, 8, 8), np.float32),
+        step=np.array([1, 2]),
+        ratio=np.array([0.1, 0.2]),
+        crop=np.array([0, 8, 0, 8]),
+        pair=(1, 2),
+    )
+    write_results(path, record)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    assert "not recorded (assumed 50 \u00b5m)" in res.stdout, res.stdout
+
+
+def test_a_results_json_that_would_not_read_back_is_refused_unwritten(tmp_path):
+    """Results.write_json wrote a record whose "paper" (the caller's) nests past radiokit's 32
+    levels, and load_results then refused the file it had written; now refused before the file,
+    in one line naming it. The same record at the depth allowed is written and reads back."""
+    from test_hostile_inputs import _results_json
+
+    from radiokit.results import Results, load_results
+
+    def nested(levels):
+        value = {}
+        for _ in range(levels - 1):  # the paper dict is a level inside the results' own object
+            value = {"x": value}
+        return value
+
+    out = tmp_path / "results.json"
+    deep = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH + 1)})
+    with pytest.raises(ValueError) as info:
+        deep.write_json(out)
+    message = str(info.value)
+    assert "\n" not in message and str(out) in message and "not written" in message
+    assert list(tmp_path.iterdir()) == []
+
+    fits = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH - 1)})
+    assert load_results(fits.write_json(out)).paper == fits.paper
