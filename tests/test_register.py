@@ -3706,3 +3706,18 @@ def test_the_rim_check_does_not_run_on_a_textured_pair():
     assert reg.quality.rim_share < _RIM_GATE
     assert reg.options["rim_check"] == {"run": False, "seconds": 0.0}
     assert reg.quality.ok and np.isnan(reg.quality.inconsistency)
+
+
+def test_bool_images_register_as_0_and_1_as_on_the_command_line():
+    """``radiokit register`` reads a bool TIFF as 0/1 (float32); ``register()`` refused the same
+    arrays ("must be numeric; got dtype bool"). Now bool is 0/1 in Python too: the very field of
+    the float copies, and a binary pattern pulled by (2, 3) px is found to a tenth of a pixel."""
+    from scipy import ndimage
+
+    blobs = ndimage.gaussian_filter(np.random.default_rng(7).random((72, 72)), 3) > 0.5
+    fixed, moving = blobs[2:66, 3:67], blobs[:64, :64]  # fixed(x) = moving(x + (2, 3))
+    reg = register(fixed, moving, preset="fast")
+    ref = register(fixed.astype(np.float32), moving.astype(np.float32), preset="fast")
+    np.testing.assert_array_equal(reg.displacement, ref.displacement)
+    assert reg.quality.ok == ref.quality.ok and reg.quality.ok, reg.quality.reason
+    np.testing.assert_allclose(np.median(reg.displacement, axis=(1, 2)), [2, 3], atol=0.1)

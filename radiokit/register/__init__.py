@@ -280,8 +280,9 @@ def _check(fixed, moving, mask):
     for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
         if a.ndim != 2:
             raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}{image_hint(given, a.shape)}")
-        if a.dtype.kind not in "uif":
-            raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
+        # bool is 0/1, as the command line reads a bool TIFF (into float32); it was refused here
+        if a.dtype.kind not in "buif":
+            raise ValueError(f"{name} image must be numeric (or bool, as 0/1); got dtype {a.dtype}")
         if min(a.shape) < MIN_SIDE:
             raise ValueError(f"{name} image is too small to register: {a.shape}")
         if max(a.shape) > MAX_SIDE:
@@ -457,6 +458,8 @@ def register(
     The result carries ``confidence`` (where the motion is observable from these images, see
     ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
+
+    Bool images register as 0/1 (as ``radiokit register`` reads a bool TIFF).
 
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
     finite (and within float32's range), non-constant, of one shape and 8 to 32766 px a side, a
