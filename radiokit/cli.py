@@ -1187,7 +1187,7 @@ def _flag_warning(q, types_hint, fixed, moving) -> str:
     shows of why (each other's negative; two integer widths, else two value ranges); "" when ok."""
     if q.ok:
         return ""
-    return f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{types_hint or _scales_hint(fixed, moving)}"
+    return f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{types_hint or _scales_hint(fixed, moving, q)}"
 
 
 #: the ratio of the two images' 1-99 % ranges over which a flagged pair is said to be of two
@@ -1195,14 +1195,22 @@ def _flag_warning(q, types_hint, fixed, moving) -> str:
 #: "Register"), so a pair the gain could explain is never told so
 _SCALES_RATIO = 4.0
 
+#: the least NCC of the registered pair (gain- and offset-blind) at which two ranges are named: a
+#: copy at another scale registered is one picture, correlated over half; a pair of one scale whose
+#: contents differ (a body grazing one frame, filling the other: 12-fold ranges, NCC 0.19) was told
+#: "counts against transmission, or a rescaled copy?" (s53rvreg)
+_SCALES_NCC = 0.5
 
-def _scales_hint(fixed, moving) -> str:
+
+def _scales_hint(fixed, moving, q) -> str:
     """Why a flagged pair may be judged unregistrable as given, for any types: counts against
     transmission or a unit scale (s53: uint16 12-bit counts against a float32 copy in 0-1, moved
     2 px, registered at NCC 0.99 and flagged "did not find the motion" with no word of why). The
     checks compare intensities and explain a gain of at most 2 either way; the flag stays (no check
     judges intensities of two scales) and the two ranges are named, only where they differ by over
-    :data:`_SCALES_RATIO`."""
+    :data:`_SCALES_RATIO` and the registered pair is one picture (NCC at least :data:`_SCALES_NCC`)."""
+    if not q.ncc_after >= _SCALES_NCC:  # NaN: not measured, nothing shown
+        return ""
     from radiokit.register._confidence import sample_step
 
     spans = []
