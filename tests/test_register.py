@@ -3721,3 +3721,25 @@ def test_bool_images_register_as_0_and_1_as_on_the_command_line():
     np.testing.assert_array_equal(reg.displacement, ref.displacement)
     assert reg.quality.ok == ref.quality.ok and reg.quality.ok, reg.quality.reason
     np.testing.assert_allclose(np.median(reg.displacement, axis=(1, 2)), [2, 3], atol=0.1)
+
+
+@pytest.mark.parametrize("shape", [(8, 32766), (32766, 8)])
+def test_warps_scipy_fallback_samples_as_opencv_does_on_a_frame_just_under_the_limit(shape, monkeypatch):
+    """The frame just under OpenCV's limit, warped by OpenCV and again with the scipy fallback
+    forced (the limit lowered to its side): both are bilinear with the border repeated, so they
+    agree to float32 rounding of the values (0-1000) everywhere, pulls past every edge included,
+    and with ``cval`` on the same pixels."""
+    import radiokit.register._common as common
+    from radiokit.register import MAX_SIDE
+
+    assert MAX_SIDE == common._REMAP_SIDES - 1 == max(shape)  # register's refusal is OpenCV's limit
+    rng = np.random.default_rng(11)
+    image = (rng.random(shape) * 1000).astype(np.float32)
+    d = (rng.standard_normal((2, *shape)) * 6).astype(np.float32)  # reaches past all four edges
+    opencv = [warp(image, d), warp(image, d, cval=np.nan)]
+    monkeypatch.setattr(common, "_REMAP_SIDES", max(shape))
+    scipy_ = [warp(image, d), warp(image, d, cval=np.nan)]
+    for a, b in zip(opencv, scipy_, strict=True):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1000 * 4 * np.finfo(np.float32).eps, equal_nan=True)
+    assert np.isnan(opencv[1]).any() and not np.isnan(opencv[0]).any()
