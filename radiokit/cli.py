@@ -1097,7 +1097,7 @@ def cmd_register(args) -> int:
                 else "not run (already flagged)"
             )
         )
-    print(f"wrote {shown(args.output)}" + _flag_warning(q, types_hint, fixed, moving))
+    print(f"wrote {shown(args.output)}" + _flag_warning(q, types_hint))
     if args.png:
         print(f"figure {shown(args.png)}")
     return 0 if q.ok else 1
@@ -1200,44 +1200,13 @@ def _types_hint(types: tuple[str, str], images: tuple) -> str:
     )
 
 
-def _flag_warning(q, types_hint, fixed, moving) -> str:
-    """The line ``register`` prints under a flagged result: the reason, and what the pair itself
-    shows of why (each other's negative; two integer widths, else two value ranges); "" when ok."""
+def _flag_warning(q, types_hint) -> str:
+    """The line ``register`` prints under a flagged result: the reason (which names two value
+    ranges where the pair shows them, ``register()``'s), and what else the pair shows of why (each
+    other's negative; two integer widths); "" when ok."""
     if q.ok:
         return ""
-    return f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{types_hint or _scales_hint(fixed, moving)}"
-
-
-#: the ratio of the two images' 1-99 % ranges over which a flagged pair is said to be of two
-#: value scales: twice the factor of 2 either way the checks' global gain explains (README,
-#: "Register"), so a pair the gain could explain is never told so
-_SCALES_RATIO = 4.0
-
-
-def _scales_hint(fixed, moving) -> str:
-    """Why a flagged pair may be judged unregistrable as given, for any types: counts against
-    transmission or a unit scale (s53: uint16 12-bit counts against a float32 copy in 0-1, moved
-    2 px, registered at NCC 0.99 and flagged "did not find the motion" with no word of why). The
-    checks compare intensities and explain a gain of at most 2 either way; the flag stays (no check
-    judges intensities of two scales) and the two ranges are named, only where they differ by over
-    :data:`_SCALES_RATIO`."""
-    from radiokit.register._confidence import sample_step
-
-    spans = []
-    for a in (fixed, moving):
-        a = np.asarray(a)[:: sample_step(np.size(a)), :: sample_step(np.size(a))].astype(np.float64)
-        lo, hi = np.percentile(a, [1, 99])
-        spans.append((lo, hi))
-    widths = [hi - lo for lo, hi in spans]
-    if min(widths) <= 0 or max(widths) / min(widths) <= _SCALES_RATIO:
-        return ""
-    (a, b), (c, d) = spans
-    ratio = max(widths) / min(widths)
-    return (
-        f"; the images' 1-99 % ranges differ {ratio:.0f}-fold (fixed {a:.4g} to {b:.4g}, "
-        f"moving {c:.4g} to {d:.4g}), which the checks compare with a gain of at most 2: counts against "
-        "transmission, or a rescaled copy? register two images of one scale"
-    )
+    return f"\nWARNING: not trustworthy: {q.reason}{_negative_hint(q)}{types_hint}"
 
 
 @contextlib.contextmanager

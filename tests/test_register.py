@@ -3706,3 +3706,89 @@ def test_the_rim_check_does_not_run_on_a_textured_pair():
     assert reg.quality.rim_share < _RIM_GATE
     assert reg.options["rim_check"] == {"run": False, "seconds": 0.0}
     assert reg.quality.ok and np.isnan(reg.quality.inconsistency)
+
+
+def test_bool_images_register_as_0_and_1_as_on_the_command_line():
+    """``radiokit register`` reads a bool TIFF as 0/1 (float32); ``register()`` refused the same
+    arrays ("must be numeric; got dtype bool"). Now bool is 0/1 in Python too: the very field of
+    the float copies, and a binary pattern pulled by (2, 3) px is found to a tenth of a pixel."""
+    from scipy import ndimage
+
+    blobs = ndimage.gaussian_filter(np.random.default_rng(7).random((72, 72)), 3) > 0.5
+    fixed, moving = blobs[2:66, 3:67], blobs[:64, :64]  # fixed(x) = moving(x + (2, 3))
+    reg = register(fixed, moving, preset="fast")
+    ref = register(fixed.astype(np.float32), moving.astype(np.float32), preset="fast")
+    np.testing.assert_array_equal(reg.displacement, ref.displacement)
+    assert reg.quality.ok == ref.quality.ok and reg.quality.ok, reg.quality.reason
+    np.testing.assert_allclose(np.median(reg.displacement, axis=(1, 2)), [2, 3], atol=0.1)
+
+
+@pytest.mark.parametrize("shape", [(8, 32766), (32766, 8)])
+def test_warps_scipy_fallback_samples_as_opencv_does_on_a_frame_just_under_the_limit(shape, monkeypatch):
+    """The frame just under OpenCV's limit, warped by OpenCV and again with the scipy fallback
+    forced (the limit lowered to its side): both are bilinear with the border repeated, so they
+    agree to float32 rounding of the values (0-1000) everywhere, pulls past every edge included,
+    and with ``cval`` on the same pixels."""
+    import radiokit.register._common as common
+    from radiokit.register import MAX_SIDE
+
+    assert MAX_SIDE == common._REMAP_SIDES - 1 == max(shape)  # register's refusal is OpenCV's limit
+    rng = np.random.default_rng(11)
+    image = (rng.random(shape) * 1000).astype(np.float32)
+    d = (rng.standard_normal((2, *shape)) * 6).astype(np.float32)  # reaches past all four edges
+    opencv = [warp(image, d), warp(image, d, cval=np.nan)]
+    monkeypatch.setattr(common, "_REMAP_SIDES", max(shape))
+    scipy_ = [warp(image, d), warp(image, d, cval=np.nan)]
+    for a, b in zip(opencv, scipy_, strict=True):
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1000 * 4 * np.finfo(np.float32).eps, equal_nan=True)
+    assert np.isnan(opencv[1]).any() and not np.isnan(opencv[0]).any()
+
+
+def test_a_pair_of_two_value_scales_says_so_in_pythons_reason_too():
+    """12-bit counts against the same image scaled to 0-1, moved (2, -1) px: registered to NCC
+    0.99, flagged "did not find the motion" (the checks explain a gain of at most 2). The command
+    line named the two ranges; ``register()``'s reason, which a script and the result file read,
+    did not. Now the reason names them, in the user's units; a gain of 1.5 passes without it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    image = ndimage.gaussian_filter(rng.random((128, 160)), 2)
+    image = (image - image.min()) / (image.max() - image.min())
+    moved = ndimage.shift(image, (-2, 1), order=3, mode="reflect")
+    counts = np.round(moved * 4095).astype(np.uint16)
+    reg = register(counts, image.astype(np.float32))
+    assert not reg.quality.ok and reg.quality.ncc_after > 0.9
+    lo, hi = np.percentile(counts, [1, 99])
+    assert re.search(r"the images' 1-99 % ranges differ \d+-fold \(fixed ([\d.]+) to ([\d.]+),", reg.quality.reason)
+    shown = [float(x) for x in re.search(r"\(fixed ([\d.]+) to ([\d.]+),", reg.quality.reason).groups()]
+    np.testing.assert_allclose(shown, [lo, hi], rtol=1e-3)  # counts, not register's rescaled unit
+    reg = register(moved.astype(np.float32), (image * 1.5).astype(np.float32), preset="fast")
+    assert reg.quality.ok and "ranges differ" not in reg.quality.reason, reg.quality.reason
+
+
+@pytest.mark.parametrize("domain", ["transmission", "line integrals"])
+def test_the_ranges_hint_is_not_given_for_one_scale_whose_contents_differ(domain):
+    """Two transmission images of one scale (or their line integrals): a textured body that only
+    grazes the fixed frame and fills a third of the moving one. Their 1-99 % ranges differ over
+    10-fold (the fixed one's is the open beam's noise) and the pair is rightly flagged, but not
+    for two scales: the registered pair is barely correlated (NCC ~0.2), not one picture at two
+    gains. The hint said "counts against transmission, or a rescaled copy?" of it."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:128, 0:128]
+    tex = ndimage.gaussian_filter(rng.random((128, 128)), 2)
+
+    def body(c0):
+        inside = (yy - 64) ** 2 + (xx - c0) ** 2 < 35**2
+        return np.where(inside, 0.3 + 0.2 * tex, 1.0) + 0.01 * rng.standard_normal((128, 128))
+
+    fixed, moving = body(-30), body(20)
+    if domain == "line integrals":
+        fixed, moving = -np.log(fixed), -np.log(moving)
+    spans = [np.subtract(*np.percentile(a, [99, 1])) for a in (fixed, moving)]
+    assert max(spans) / min(spans) > 10  # what the hint looked at
+    reg = register(fixed, moving, preset="fast")
+    assert not reg.quality.ok and reg.quality.reason
+    assert "ranges differ" not in reg.quality.reason, reg.quality.reason

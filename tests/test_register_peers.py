@@ -377,3 +377,47 @@ def test_elastix_refuses_parameters_that_are_not_a_dict_of_names_before_loading_
     moving = _textured(32)
     with pytest.raises(ValueError, match=r"^elastix: parameters=.*expected a dict"):
         register(moving, moving[::-1].copy(), "elastix", parameters=parameters)
+
+
+def test_itk_warnings_are_given_back_as_found_when_two_threads_overlap_or_one_raises():
+    """Two registrations on two threads (SimpleITK releases the GIL): A turns the display off, B
+    enters (finding it off), A leaves and turned it back on under B, B leaves and "restored" off,
+    for good: the user's own SimpleITK warnings were silenced from then on. The order is forced
+    with events on the real SimpleITK; an exception in the block gives it back too."""
+    import threading
+
+    import SimpleITK as sitk
+
+    from radiokit.register._peers import _itk_warnings_off
+
+    before = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(True)
+    try:
+        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+        seen = {}
+
+        def a():
+            with _itk_warnings_off(sitk):
+                a_in.set()
+                b_in.wait(5)
+            a_out.set()
+
+        def b():
+            a_in.wait(5)
+            with _itk_warnings_off(sitk):
+                b_in.set()
+                a_out.wait(5)
+                seen["b after a left"] = sitk.ProcessObject.GetGlobalWarningDisplay()
+
+        threads = [threading.Thread(target=a), threading.Thread(target=b)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(10)
+        assert seen["b after a left"] is False  # still inside B's block
+        assert sitk.ProcessObject.GetGlobalWarningDisplay() is True
+        with pytest.raises(RuntimeError, match="inside"), _itk_warnings_off(sitk):
+            raise RuntimeError("inside")
+        assert sitk.ProcessObject.GetGlobalWarningDisplay() is True
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(before)

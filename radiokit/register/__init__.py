@@ -280,8 +280,9 @@ def _check(fixed, moving, mask):
     for name, a, given in (("fixed", f, fixed), ("moving", m, moving)):
         if a.ndim != 2:
             raise ValueError(f"{name} image must be 2-D (rows, cols); got shape {a.shape}{image_hint(given, a.shape)}")
-        if a.dtype.kind not in "uif":
-            raise ValueError(f"{name} image must be numeric; got dtype {a.dtype}")
+        # bool is 0/1, as the command line reads a bool TIFF (into float32); it was refused here
+        if a.dtype.kind not in "buif":
+            raise ValueError(f"{name} image must be numeric (or bool, as 0/1); got dtype {a.dtype}")
         if min(a.shape) < MIN_SIDE:
             raise ValueError(f"{name} image is too small to register: {a.shape}")
         if max(a.shape) > MAX_SIDE:
@@ -458,6 +459,8 @@ def register(
     ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
 
+    Bool images register as 0/1 (as ``radiokit register`` reads a bool TIFF).
+
     Raises ValueError, in one line naming the problem, for images that are not 2-D, numeric,
     finite (and within float32's range), non-constant, of one shape and 8 to 32766 px a side, a
     mask that is not a bool array of that shape selecting a pixel, a masked array (``np.ma``), an unknown method or preset,
@@ -486,6 +489,7 @@ def register(
     # clipped and scaled (its range was measured there, not again per preset)
     if _memo_of(f, m, mask) is not None:
         return _register(f, m, method, mask, retry, options)
+    given = (f, m)  # in the user's units, for the reason's ranges (_scales_reason)
     lo, hi = _pair_range(f, m, _CLIP_PERCENTILES)
     f, m, clipped = _clip_extremes(f, m, lo, hi)
     f, m, scale = _rescale(f, m, lo, hi)
@@ -498,9 +502,51 @@ def register(
             _regularisation_check(reg, f, m, mask)
         if any(clipped.values()):
             reg.options["clipped"] = clipped
+        if not reg.quality.ok:
+            reg.quality.reason += _scales_reason(*given, reg.quality)
         return reg
     finally:
         _PAIRS.reset(token)
+
+
+#: the ratio of the two images' 1-99 % ranges over which a flagged pair is said to be of two
+#: value scales: twice the factor of 2 either way the checks' global gain explains (README,
+#: "Register"), so a pair the gain could explain is never told so
+_SCALES_RATIO = 4.0
+
+#: the least NCC of the registered pair (gain- and offset-blind) at which two ranges are named: a
+#: copy at another scale registered is one picture, correlated over half; a pair of one scale whose
+#: contents differ (a body grazing one frame, filling the other: 12-fold ranges, NCC 0.19) was told
+#: "counts against transmission, or a rescaled copy?" (s53rvreg)
+_SCALES_NCC = 0.5
+
+
+def _scales_reason(fixed, moving, q) -> str:
+    """What a flagged pair shows of why it may be unregistrable as given: counts against
+    transmission or a unit scale (s53: uint16 12-bit counts against a float32 copy in 0-1, moved
+    2 px, registered at NCC 0.99 and flagged "did not find the motion" with no word of why). The
+    checks compare intensities and explain a gain of at most 2 either way; the flag stays (no check
+    judges intensities of two scales) and the two ranges (``fixed``, ``moving`` in the user's
+    units) are named, only where they differ by over :data:`_SCALES_RATIO` and the registered pair
+    is one picture (NCC at least :data:`_SCALES_NCC`). In the reason, not only on the command
+    line: a script, and the result file, read that (s53rvreg)."""
+    if not q.ncc_after >= _SCALES_NCC:  # NaN: not measured, nothing said
+        return ""
+    from radiokit.register._confidence import sample_step
+
+    spans = []
+    for a in (fixed, moving):
+        step = sample_step(a.size)
+        spans.append(np.percentile(a[::step, ::step].astype(np.float64), [1, 99]))
+    widths = [hi - lo for lo, hi in spans]
+    if min(widths) <= 0 or max(widths) / min(widths) <= _SCALES_RATIO:
+        return ""
+    (a, b), (c, d) = spans
+    return (
+        f"; the images' 1-99 % ranges differ {max(widths) / min(widths):.0f}-fold (fixed {a:.4g} to {b:.4g}, "
+        f"moving {c:.4g} to {d:.4g}), which the checks compare with a gain of at most 2: counts against "
+        "transmission, or a rescaled copy? register two images of one scale"
+    )
 
 
 def _register(f, m, method, mask, retry, options) -> Registration:

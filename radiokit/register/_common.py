@@ -6,6 +6,10 @@ import numpy as np
 
 from radiokit.checks import refuse_masked
 
+#: OpenCV's remap asserts every side (source and map) under this, SHRT_MAX; register's MAX_SIDE is
+#: one under it, and :func:`_warp_rows` samples a frame past it with scipy's bilinear
+_REMAP_SIDES = 32767
+
 
 def warp(image, displacement, order=1, cval=None) -> np.ndarray:
     """``image(x + d(x))`` on the displacement's grid; ``order`` 1 (bilinear, OpenCV) or 3.
@@ -76,7 +80,7 @@ def _warp_rows(image, d, row0, order=1, cval=None) -> np.ndarray:
     r, c = rr + d[0], cc + d[1]
     # OpenCV's remap asserts sides under SHRT_MAX (an 8 x 40000 strip was a cv2.error): past it,
     # scipy's bilinear, the same border (register() refuses such a pair; warp() samples it)
-    if order == 1 and max(*image.shape, rows, cols) < 32767:
+    if order == 1 and max(*image.shape, rows, cols) < _REMAP_SIDES:
         out = cv2.remap(image, c, r, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     else:
         from scipy import ndimage

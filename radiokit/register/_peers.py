@@ -57,6 +57,7 @@ import importlib
 import importlib.util
 import re
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -415,18 +416,33 @@ def _sitk_image(sitk, a):
     return sitk.GetImageFromArray(np.ascontiguousarray(a, np.float32))  # spacing 1, origin 0
 
 
+#: the blocks inside :func:`_itk_warnings_off` now, and the display as the first found it. The
+#: display is one switch for the process: two registrations on two threads (SimpleITK releases the
+#: GIL) each saving and restoring it left it off for good when the second outlived the first
+#: (it found it off), and turned it back on under the second
+_ITK_QUIET = {"depth": 0, "was": True}
+_ITK_QUIET_LOCK = threading.Lock()
+
+
 @contextlib.contextmanager
 def _itk_warnings_off(sitk):
     """SimpleITK's global warning display off for the block, restored after. Its warnings are C++
     writes to the process's stderr: a field the optimiser carried out of an 8 x 8 frame wrote "No
     valid points were found" six lines at a time, 234 lines under the command line's one; the
-    result is judged by radiokit's checks instead (which flag that field)."""
-    was = sitk.ProcessObject.GetGlobalWarningDisplay()
-    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    result is judged by radiokit's checks instead (which flag that field). Blocks overlapping on
+    threads share it: off from the first's start to the last's end, then as the first found it."""
+    with _ITK_QUIET_LOCK:
+        if not _ITK_QUIET["depth"]:
+            _ITK_QUIET["was"] = sitk.ProcessObject.GetGlobalWarningDisplay()
+            sitk.ProcessObject.SetGlobalWarningDisplay(False)
+        _ITK_QUIET["depth"] += 1
     try:
         yield
     finally:
-        sitk.ProcessObject.SetGlobalWarningDisplay(was)
+        with _ITK_QUIET_LOCK:
+            _ITK_QUIET["depth"] -= 1
+            if not _ITK_QUIET["depth"]:
+                sitk.ProcessObject.SetGlobalWarningDisplay(_ITK_QUIET["was"])
 
 
 @_method("sitk-bspline")
