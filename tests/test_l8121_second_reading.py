@@ -1,0 +1,25 @@
+"""The driver against a second, independent model of the L8121 (tests/l8121_second_reading.py).
+
+The model was written from ../shared/hardware/L8121.md alone, before the driver's emulator or tests
+were read; where the notes allow a unit to do something, it does it here, and the driver must cope.
+"""
+
+from __future__ import annotations
+
+import pytest
+from l8121_second_reading import Controller, Knobs
+
+from acquisition.l8121 import L8121
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_the_spacing_counts_from_the_last_byte_of_a_cr_lf_reply(dialect):
+    # L8121.md: replies end in CR or CR LF; a controller may need ~50 ms between commands. A unit
+    # whose LF follows its CR 30 ms later has answered only at the LF: counted from the CR, the
+    # driver's 60 ms left it 30 ms, and this model, like a unit that needs them, lost the command.
+    knobs = Knobs(dialect=dialect, eol=b"\r\n", lf_pause_s=0.03)
+    with Controller(knobs) as c, L8121(c.port, dialect=dialect) as src:
+        for _ in range(3):
+            assert src.interlock_closed()
+    assert c.breaches == []
+    assert None not in [reply for _, _, reply in c.log]
