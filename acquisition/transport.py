@@ -961,12 +961,14 @@ class SerialTransport:
         that never falls quiet (a stuck one sending NULs) is noise, left to the flush, and costs
         a command at most one spacing more."""
         cap = self._last_exchange + 2 * self.min_interval_s
-        seen = ser.in_waiting
-        while (wait := self._last_exchange + self.min_interval_s - time.monotonic()) > 0:
+        seen = 0  # bytes already waiting came after the last exchange too (the caller paused)
+        while True:
+            waiting, now = ser.in_waiting, time.monotonic()
+            if waiting != seen and now < cap:
+                seen, self._last_exchange = waiting, now
+            if (wait := self._last_exchange + self.min_interval_s - now) <= 0:
+                return
             time.sleep(min(wait, _SPACING_SLICE_S))
-            waiting = ser.in_waiting
-            if waiting != seen and time.monotonic() < cap:
-                seen, self._last_exchange = waiting, time.monotonic()
 
     def _write(self, ser, command: str, payload: bytes) -> None:
         """Send ``payload``, timed out only while bytes are left unsent (the caller drains the
