@@ -28,3 +28,17 @@ def test_the_spacing_counts_from_the_last_byte_of_a_cr_lf_reply(dialect):
             assert src.interlock_closed()
     assert c.breaches == []
     assert None not in [reply for _, _, reply in c.log]
+
+
+def test_b_waits_for_srb_ready_before_its_control_commands():
+    # L8121.md lists B's SRB, READY or BUSY, "remote operation state", which the L8121-02 driver
+    # polls in its cycle; a unit busy at first refuses control commands: the presets waited for
+    # READY instead of failing at the first PHV.
+    knobs = Knobs(dialect="B", b_busy_s=0.6, ramp_s=0.05)
+    with Controller(knobs) as c, L8121(c.port, dialect="B") as src:
+        src.on(60, 250)
+        assert c.emitting()
+        src.off()
+    assert c.xray_commands == [("XON", 60.0, 250)]
+    assert not c.emitting()
+    assert "ERROR" not in [reply for _, cmd, reply in c.log if cmd != "Enter"]
