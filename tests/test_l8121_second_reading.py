@@ -6,12 +6,26 @@ were read; where the notes allow a unit to do something, it does it here, and th
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
 from l8121_second_reading import Controller, Knobs
 
 from acquisition.l8121 import L8121
+
+
+def _cli(*args: str, hook=None) -> subprocess.CompletedProcess:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "radiokit.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    if hook is not None:
+        hook(proc)
+    out, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -42,3 +56,56 @@ def test_b_waits_for_srb_ready_before_its_control_commands():
     assert c.xray_commands == [("XON", 60.0, 250)]
     assert not c.emitting()
     assert "ERROR" not in [reply for _, cmd, reply in c.log if cmd != "Enter"]
+
+
+def _hold(word: str, seconds: float):
+    def act(c: Controller) -> None:
+        c.hold_reply[word] = seconds
+
+    return act
+
+
+def _signal(proc_box: list, signum: int):
+    def act(c: Controller) -> None:
+        os.kill(proc_box[0].pid, signum)
+
+    return act
+
+
+ON = ["acquire", "source", "on", "--kv", "60", "--ua", "250", "--for", "0.3"]
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_source_on_through_every_link_quirk_the_notes_allow(dialect):
+    # CR LF line ends, replies split across reads, junk waiting before the first command, a unit
+    # still in its power-on checks, and the XON answered at the slowest legal time (B's driver
+    # calls 2 s a missed reply): the beam comes on at the settings asked, and goes off, confirmed
+    knobs = Knobs(dialect=dialect, eol=b"\r\n", split_s=0.002, junk_at_open=b"\x00\r\n", self_test_s=0.8, ramp_s=0.1)
+    with Controller(knobs) as c:
+        # (A's notes give no reply time: B's 2 s is the family's, a shorter hold keeps A's case quick)
+        c.when("XON", 1, _hold("XON", 1.7 if dialect == "B" else 0.6))
+        res = _cli(*ON, "--dialect", dialect, "--port", c.port)
+    assert res.returncode == 0, res.stderr
+    assert "tube off (confirmed by STS" in res.stdout.splitlines()[-1]
+    assert c.xray_commands == [("XON", 60, 250)]
+    assert not c.emitting()
+    assert c.breaches == []
+
+
+@pytest.mark.parametrize(
+    "dialect, word, nth, signum",
+    [("A", "XON", 1, signal.SIGINT), ("B", "STS", 4, signal.SIGTERM), ("B", "PHV", 1, signal.SIGINT)],
+)
+def test_a_stop_at_any_moment_ends_with_the_tube_confirmed_off(dialect, word, nth, signum):
+    # the stop lands as the controller reads the command, before it answers: at the XON (the beam
+    # coming on), at a beam poll (B's STS after XON), at a preset (nothing emitting yet)
+    box: list = []
+    with Controller(Knobs(dialect=dialect, ramp_s=0.1)) as c:
+        c.when(word, nth, _signal(box, signum))
+        res = _cli(*ON[:-1], "3", "--dialect", dialect, "--port", c.port, hook=box.append)
+        assert not c.emitting()
+    assert res.returncode == 128 + signum, res.stderr
+    last = [out.strip().splitlines()[-1] for out in (res.stdout, res.stderr) if out.strip()]
+    assert any("tube off (confirmed by STS" in line for line in last)
+    assert c.sent()[-2:] == ["XOF", "STS"]
+    assert c.breaches == []
