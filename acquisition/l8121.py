@@ -3124,6 +3124,47 @@ class L8121:
         (L8121.md: "remote control needs REMOTE"); connect's check may be minutes old."""
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
             raise DeviceError(f"{self.port}: {what}: the operate switch is {switch}, not REMOTE")
+        self._await_remote_ready(what)
+
+    def _await_remote_ready(self, what: str) -> None:
+        """B: wait while ``SRB`` says ``BUSY``, queries only, for at most ``ready_timeout_s``.
+        L8121.md lists ``SRB`` (``READY`` or ``BUSY``, the remote operation state) and the L8121-02
+        driver polls it; the notes do not say a busy unit refuses control commands, but a unit that
+        did refused the presets at once (session 53, a second model of the notes). A unit that
+        refuses ``SRB`` (a mix of dialects) is taken as ready: its control commands say if not."""
+        query = self.dialect.readings.get("remote_state")
+        if query is None:
+            return
+        limit = self.config.ready_timeout_s
+        t0 = time.monotonic()
+        told = False
+        while True:
+            try:
+                reply = self._exchange(query.command)
+            except DeviceError as exc:
+                if getattr(exc, "refused", False):
+                    return
+                raise
+            try:
+                busy = query.parse(reply) == "BUSY"
+            except ValueError as why:
+                err = DeviceError(f"{self.port}: unparseable reply to {query.command} (dialect B): {reply!r} ({why})")
+                self._fail_safe(err)
+                raise err from None
+            waited = time.monotonic() - t0
+            if not busy:
+                if told:
+                    logger.info("%s: remote operation READY after %.1f s", self.port, waited)
+                return
+            if waited >= limit:
+                raise DeviceError(
+                    f"{self.port}: {what}: the controller's remote operation stayed BUSY (SRB) for "
+                    f"ready_timeout_s = {limit:g} s; look at the controller (or raise [source] ready_timeout_s)"
+                )
+            if not told:
+                logger.warning("%s: remote operation BUSY (SRB): waiting up to %g s", self.port, limit)
+                told = True
+            time.sleep(min(self.config.poll_s, max(limit - waited, 0.0)))
 
     def _not_ready(self) -> str:
         """Why a controller reports NOT_READY, where it can say: a unit may report state 5 while

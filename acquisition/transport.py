@@ -53,6 +53,7 @@ _LINK_ERRORS = (serial.SerialException, OSError, _TermiosError)
 
 # How long one low-level read may block before the exchange's own deadline is checked again.
 _READ_SLICE_S = 0.05
+_SPACING_SLICE_S = 0.005  # how often the spacing's wait looks for a byte that restarts it
 _LINE_ENDS = (b"\r", b"\n")
 
 
@@ -933,9 +934,7 @@ class SerialTransport:
         ser = self._serial
         self._drain_pending()
         self._await_late_reply()
-        wait = self._last_exchange + self.min_interval_s - time.monotonic()
-        if wait > 0:
-            time.sleep(wait)
+        self._wait_spacing(ser)
         self._flush_late(ser)  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
         self._rx = bytearray()
@@ -979,6 +978,24 @@ class SerialTransport:
             self._last_exchange = time.monotonic()
         self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
         return reply
+
+    def _wait_spacing(self, ser) -> None:
+        """Wait out the command spacing, counted from the controller's last byte: a byte that comes
+        meanwhile restarts it. L8121.md allows replies ending in CR LF, and a line is read at its
+        CR; a unit whose LF came 30 ms after its CR had answered only then, and a command 60 ms
+        after the CR reached it 30 ms after its reply, and was lost by a controller model that
+        needs its ~50 ms (session 53). A byte restarts it only within one more spacing: a line
+        that never falls quiet (a stuck one sending NULs) is noise, left to the flush, and costs
+        a command at most one spacing more."""
+        cap = self._last_exchange + 2 * self.min_interval_s
+        seen = 0  # bytes already waiting came after the last exchange too (the caller paused)
+        while True:
+            waiting, now = ser.in_waiting, time.monotonic()
+            if waiting != seen and now < cap:
+                seen, self._last_exchange = waiting, now
+            if (wait := self._last_exchange + self.min_interval_s - now) <= 0:
+                return
+            time.sleep(min(wait, _SPACING_SLICE_S))
 
     def _write(self, ser, command: str, payload: bytes) -> None:
         """Send ``payload``, timed out only while bytes are left unsent (the caller drains the

@@ -77,6 +77,7 @@ ON_60_250 = {
         ("DAG", "AGING 0 0 END"),
         ("SIN", "INTER LOCK ON"),
         ("SRL", "REMOTE"),
+        ("SRB", "READY"),  # remote operation not BUSY (L8121.md lists SRB)
         ("SPV", "SPV 40.0kV"),
         ("SPC", "SPC 0uA"),
         ("PHV 600", "PHV 600"),
@@ -202,6 +203,7 @@ def test_connect_to_an_emitting_tube_then_close_switches_off(dialect, pairs):
                 ("DAG", "AGING 1 0 YET"),
                 ("SIN", "INTER LOCK ON"),
                 ("SRL", "REMOTE"),  # B's warm-up starts with XON: remote control needs REMOTE
+                ("SRB", "READY"),  # remote operation not BUSY (L8121.md lists SRB)
                 # the XON emits at the presets: set and read back first (default: the lowest)
                 ("SPV", "SPV 0.0kV"),
                 ("SPC", "SPC 0uA"),
@@ -245,6 +247,7 @@ def test_b_a_warm_up_xon_answered_by_an_exposure_is_switched_off():
         ("DAG", "AGING 1 0 YET"),
         ("SIN", "INTER LOCK ON"),
         ("SRL", "REMOTE"),
+        ("SRB", "READY"),  # remote operation not BUSY (L8121.md lists SRB)
         ("SPV", "SPV 40.0kV"),
         ("SPC", "SPC 0uA"),
         ("PHV 400", "PHV 400"),
@@ -335,7 +338,7 @@ def test_on_refused_by_queries_alone(dialect, ready, message):
 def test_b_an_exposure_xon_answered_by_aging_is_switched_off():
     pairs = (
         CONNECT["B"]
-        + ON_60_250["B"][:14]
+        + ON_60_250["B"][: ON_60_250["B"].index(("XON", "XON")) + 1]
         + [
             ("STS", "AGING"),  # the controller started a warm-up instead
             ("XOF", "XOF"),
