@@ -150,3 +150,28 @@ def test_a_results_json_that_would_not_read_back_is_refused_unwritten(tmp_path):
 
     fits = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH - 1)})
     assert load_results(fits.write_json(out)).paper == fits.paper
+
+
+def test_a_tiff_stacks_sources_get_the_room_its_calibrations_provenance_leaves(tmp_path):
+    """review s53rvoff: a TIFF's one description holds the calibration's provenance and the
+    sources together; the list was summarised only past a quarter of the bound, so a calibration
+    of 10 000 files (3.3 MB, which Calibration.save writes and load reads) with 9 000 projection
+    files (1.0 MB) made ``correct`` refuse a .tif output that each part alone fits. The list is
+    summarised where the whole description would pass the bound, and the stack reads back."""
+    from radiokit.correct import SOURCES_LISTED_CHARS, stack_meta
+
+    provenance = _calibration(10_000).provenance
+    names = _names(9_000)
+    listed, prov = len(strict_json.dumps(names)), len(strict_json.dumps(provenance))
+    assert listed < SOURCES_LISTED_CHARS and prov < strict_json.MAX_CHARS < listed + prov  # the case
+    meta = stack_meta("log", provenance, names)
+    out = tmp_path / "c.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with StackWriter(out, (4, 4), meta=meta) as w:
+            w.append(np.zeros((4, 4), np.float32))
+        back = read(out).meta["description"]
+    assert back["sources"]["count"] == 9_000 and back["sources"]["last"] == names[-1]
+    assert back["calibration"]["inputs"] == provenance["inputs"]
+    # a short list beside a short provenance is still named one by one
+    assert stack_meta("log", _calibration(10).provenance, names)["sources"] == names
