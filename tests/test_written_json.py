@@ -175,3 +175,25 @@ def test_a_tiff_stacks_sources_get_the_room_its_calibrations_provenance_leaves(t
     assert back["calibration"]["inputs"] == provenance["inputs"]
     # a short list beside a short provenance is still named one by one
     assert stack_meta("log", _calibration(10).provenance, names)["sources"] == names
+
+
+def test_results_write_json_replaces_the_file_whole_never_rewrites_it_in_place(tmp_path):
+    """review s53rvoff: Results.write_json wrote with ``Path.write_text``, truncating the file in
+    place: a crash or a full disk mid-write left a truncated results.json where the last good one
+    was. It writes a temporary file beside it and renames it over: a hard link to the old file
+    (its inode) still holds the old text whole, the new name the new, no temporary left behind.
+    The library call still replaces an existing file (the CLI refuses without --overwrite)."""
+    from test_hostile_inputs import _results_json
+
+    from radiokit.results import Results, load_results
+
+    out = tmp_path / "results.json"
+    old = Results.from_json(_results_json())
+    old.write_json(out)
+    before = out.read_text()
+    os.link(out, tmp_path / "kept.json")
+    new = Results.from_json(_results_json() | {"paper": {"note": "second run"}})
+    assert new.write_json(out) == out
+    assert (tmp_path / "kept.json").read_text() == before  # the old inode untouched
+    assert load_results(out).paper == {"note": "second run"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.json", "results.json"]
