@@ -197,3 +197,41 @@ def test_results_write_json_replaces_the_file_whole_never_rewrites_it_in_place(t
     assert (tmp_path / "kept.json").read_text() == before  # the old inode untouched
     assert load_results(out).paper == {"note": "second run"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.json", "results.json"]
+
+
+def test_calibrate_from_files_whose_names_alone_pass_the_bound_is_refused_before_any_is_read(tmp_path):
+    """review s53rvoff: ``calibrate`` from more files than its provenance can name (each file's
+    name as given, resolved, and its record: ~13 000 of 90 characters) read every frame, then
+    refused the save, naming "the calibration", not the output. The names alone tell it: refused
+    first, in one line naming the output. The files here are not images at all, so a line about
+    them would mean they were opened; the paths are long (3 500 characters) to keep them few."""
+    from conftest import run_cli
+
+    deep = tmp_path
+    for i in range(14):  # 14 folders of 248 characters: a path under PATH_MAX (4096)
+        deep = deep / (f"{i:02d}" + "d" * 246)
+    deep.mkdir(parents=True)
+    per_file = 3 * len(str(deep / "0000.tif"))  # as given in dark_files/flat_files, and in its record twice
+    n = strict_json.MAX_CHARS // per_file + 20
+    files = [deep / f"{i:04d}.tif" for i in range(n)]
+    for f in files:
+        f.write_bytes(b"not an image")
+    out = tmp_path / "cal.h5"
+    res = run_cli("calibrate", "--dark", *files[: n // 2], "--flat", *files[n // 2 :], "-o", out)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = res.stderr.splitlines()
+    assert line.startswith(f"radiokit calibrate: {out}: not written: "), line
+    assert f"{n} dark and flat files" in line and str(strict_json.MAX_CHARS) in line, line
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["00" + "d" * 246]
+
+
+def test_a_calibration_saved_into_a_file_object_names_the_file_its_bytes_are_for(tmp_path):
+    """``radiokit calibrate`` saves into memory first (its size then known): a provenance past
+    the bound was refused as "the calibration: not written", naming no file. ``name`` names it."""
+    import io
+
+    out = tmp_path / "cal.h5"
+    with pytest.raises(ValueError) as info:
+        _calibration(30_000).save(io.BytesIO(), name=out)
+    message = str(info.value)
+    assert message.startswith(f"{out}: not written: the calibration's provenance"), message
