@@ -980,7 +980,7 @@ def stack_meta(domain: str, provenance: dict, inputs) -> dict:
     # a TIFF's one description holds the provenance too: the list gets the room it leaves (a
     # calibration of 10 000 files, 3.3 MB, beside 9 000 names made a .tif output refused: s53rvoff)
     rest = len(strict_json.dumps({"domain": domain, "calibration": provenance, "sources": []}))
-    if len(strict_json.dumps(names)) > min(SOURCES_LISTED_CHARS, strict_json.MAX_CHARS - rest):
+    if names and len(strict_json.dumps(names)) > min(SOURCES_LISTED_CHARS, strict_json.MAX_CHARS - rest):
         digest = hashlib.sha256(b"\0".join(os.fsencode(n) for n in names)).hexdigest()
         names = {"count": len(names), "first": names[0], "last": names[-1], "sha256": digest}
     return {"domain": domain, "calibration": provenance, "sources": names}

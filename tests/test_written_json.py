@@ -175,6 +175,8 @@ def test_a_tiff_stacks_sources_get_the_room_its_calibrations_provenance_leaves(t
     assert back["calibration"]["inputs"] == provenance["inputs"]
     # a short list beside a short provenance is still named one by one
     assert stack_meta("log", _calibration(10).provenance, names)["sources"] == names
+    # no files beside a provenance past the bound: nothing to summarise (names[0] raised IndexError)
+    assert stack_meta("log", _calibration(14_000).provenance, [])["sources"] == []
 
 
 def test_results_write_json_replaces_the_file_whole_never_rewrites_it_in_place(tmp_path):
