@@ -886,7 +886,7 @@ class Calibration:
         return cal
 
     # -- persistence --------------------------------------------------------------------------
-    def save(self, path, group="calibration", *, overwrite=False) -> Path:
+    def save(self, path, group="calibration", *, overwrite=False, name=None) -> Path:
         """Write to a new HDF5 file ``path`` (the calibration in ``group``), or into a binary file
         object (``io.BytesIO``: ``radiokit calibrate`` then writes the bytes, of a known size,
         atomically).
@@ -895,7 +895,8 @@ class Calibration:
         (:func:`radiokit.io.atomic_h5`): an interrupted save leaves the previous file or none.
         An existing ``path`` is replaced, whole, only with ``overwrite=True``; never written
         into. Why: a second save replaced the first calibration silently, and ``cal.save("exp.h5")``
-        added a group inside a raw experiment file.
+        added a group inside a raw experiment file. ``name``: the file a file object's bytes are
+        for, as a refusal names it (``radiokit calibrate``'s output; else "the calibration").
 
         Raises
         ------
@@ -907,7 +908,7 @@ class Calibration:
 
         # what Calibration.load refuses is never written: nested past its depth (s51), or longer
         # than it reads (s53: the provenance of 30 000 files); judged before the file is made
-        where = shown(path) if isinstance(path, (str, os.PathLike)) else "the calibration"
+        where = shown(path) if isinstance(path, (str, os.PathLike)) else shown(name) if name else "the calibration"
         texts = {
             "thresholds": strict_json.dumps_readable(asdict(self.thresholds), where, "the calibration's thresholds"),
             "provenance": strict_json.dumps_readable(self.provenance, where, "the calibration's provenance"),

@@ -682,7 +682,7 @@ def cmd_calibrate(args) -> int:
     # built in memory first: its size is then known, and a disk or file-size limit too small for
     # it is refused before the first byte (libhdf5 failing mid-write has crashed the interpreter)
     image = io.BytesIO()
-    cal.save(image)
+    cal.save(image, name=args.output)
     with atomic_path(args.output, overwrite=args.overwrite, inputs=inputs, size_hint=len(image.getbuffer())) as tmp:
         tmp.write_bytes(image.getbuffer())
     p = cal.provenance
@@ -696,6 +696,32 @@ def cmd_calibrate(args) -> int:
     for what, text in line_summary(cal.defect_rows, cal.defect_columns, p).items():
         print(f"  {what}: {text}")
     return 0
+
+
+def _refuse_unnameable(output, darks, flats) -> None:
+    """Refuse, before any file is opened, dark and flat files more than the calibration's
+    provenance can name: its ``dark_files``, ``flat_files`` and ``inputs`` (each file's name as
+    given and resolved, :class:`radiokit.calibrate.CalibrationInput`) judged at their least
+    (no format, dataset, size or time), past what radiokit reads back
+    (:data:`radiokit._json.MAX_CHARS`). Why: ``calibrate`` from ~13 000 files read every frame,
+    then refused the save (review s53rvoff). A few more characters per file (the format, an HDF5
+    dataset's name) are judged exactly at the save, after the reading."""
+    from radiokit._json import MAX_CHARS, dumps
+    from radiokit.calibrate import CalibrationInput
+
+    files = list(dict.fromkeys(map(str, [*darks, *flats])))  # one file in both lists: one record at least
+    least = {
+        "dark_files": [str(p) for p in darks],
+        "flat_files": [str(p) for p in flats],
+        "inputs": [CalibrationInput(p, str(Path(p).resolve()), "", size_bytes=0).record() for p in files],
+    }
+    size = len(dumps(least))
+    if size > MAX_CHARS:
+        raise ValueError(
+            f"{shown(output)}: not written: {len(darks) + len(flats)} dark and flat files would be named in the "
+            f"calibration's provenance in at least {size} characters of JSON, past the {MAX_CHARS} radiokit reads "
+            "back; calibrate from fewer files, or from one HDF5 stack of their frames"
+        )
 
 
 def _calibration_from_files(args, th):
@@ -714,6 +740,7 @@ def _calibration_from_files(args, th):
     datasets = _dataset_hints(args, {"dark": args.dark, "flat": args.flat})
     hints = {kind: _raw_hints(args) | datasets[kind] for kind in ("dark", "flat")}
     origins, bits, layouts, scalings, inputs = {"dark": [], "flat": []}, {}, {}, {}, {}
+    _refuse_unnameable(args.output, args.dark, args.flat)
     _judge_files(args.dark, args.flat, hints["dark"], hints["flat"])
     # the option that named each kind's dataset, recorded with the files read (CalibrationInput)
     said = {k: f"--{k}-dataset" if getattr(args, f"{k}_dataset", None) else "--dataset" for k in ("dark", "flat")}

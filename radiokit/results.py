@@ -477,11 +477,20 @@ class Results:
     def write_json(self, path) -> Path:
         """Write results.json; refused (ValueError naming ``path``) before the file, where
         :func:`load_results` would refuse it back: nested past radiokit's depth (a caller's
-        ``paper``) or past :data:`MAX_JSON_BYTES` (s53: written, then refused by its reader)."""
+        ``paper``) or past :data:`MAX_JSON_BYTES` (s53: written, then refused by its reader).
+
+        Written whole or not at all: a temporary file beside ``path``, renamed over it when
+        complete (:func:`radiokit.io.atomic_path`). Why: ``Path.write_text`` truncated the file in
+        place, so a crash or a full disk mid-write left a cut results.json where the last good
+        one was (review s53rvoff). As a library call an existing ``path`` is replaced; the
+        commands refuse one without ``--overwrite`` before they run."""
         from radiokit._names import shown
+        from radiokit.io import atomic_path
 
         path = Path(path)
-        path.write_text(dumps_readable(self.to_json(), shown(path), "results.json", MAX_JSON_BYTES, indent=1))
+        text = dumps_readable(self.to_json(), shown(path), "results.json", MAX_JSON_BYTES, indent=1)
+        with atomic_path(path, overwrite=True) as tmp:
+            tmp.write_text(text)
         return path
 
 

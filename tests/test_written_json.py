@@ -150,3 +150,90 @@ def test_a_results_json_that_would_not_read_back_is_refused_unwritten(tmp_path):
 
     fits = Results.from_json(_results_json() | {"paper": nested(strict_json.MAX_DEPTH - 1)})
     assert load_results(fits.write_json(out)).paper == fits.paper
+
+
+def test_a_tiff_stacks_sources_get_the_room_its_calibrations_provenance_leaves(tmp_path):
+    """review s53rvoff: a TIFF's one description holds the calibration's provenance and the
+    sources together; the list was summarised only past a quarter of the bound, so a calibration
+    of 10 000 files (3.3 MB, which Calibration.save writes and load reads) with 9 000 projection
+    files (1.0 MB) made ``correct`` refuse a .tif output that each part alone fits. The list is
+    summarised where the whole description would pass the bound, and the stack reads back."""
+    from radiokit.correct import SOURCES_LISTED_CHARS, stack_meta
+
+    provenance = _calibration(10_000).provenance
+    names = _names(9_000)
+    listed, prov = len(strict_json.dumps(names)), len(strict_json.dumps(provenance))
+    assert listed < SOURCES_LISTED_CHARS and prov < strict_json.MAX_CHARS < listed + prov  # the case
+    meta = stack_meta("log", provenance, names)
+    out = tmp_path / "c.tif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with StackWriter(out, (4, 4), meta=meta) as w:
+            w.append(np.zeros((4, 4), np.float32))
+        back = read(out).meta["description"]
+    assert back["sources"]["count"] == 9_000 and back["sources"]["last"] == names[-1]
+    assert back["calibration"]["inputs"] == provenance["inputs"]
+    # a short list beside a short provenance is still named one by one
+    assert stack_meta("log", _calibration(10).provenance, names)["sources"] == names
+    # no files beside a provenance past the bound: nothing to summarise (names[0] raised IndexError)
+    assert stack_meta("log", _calibration(14_000).provenance, [])["sources"] == []
+
+
+def test_results_write_json_replaces_the_file_whole_never_rewrites_it_in_place(tmp_path):
+    """review s53rvoff: Results.write_json wrote with ``Path.write_text``, truncating the file in
+    place: a crash or a full disk mid-write left a truncated results.json where the last good one
+    was. It writes a temporary file beside it and renames it over: a hard link to the old file
+    (its inode) still holds the old text whole, the new name the new, no temporary left behind.
+    The library call still replaces an existing file (the CLI refuses without --overwrite)."""
+    from test_hostile_inputs import _results_json
+
+    from radiokit.results import Results, load_results
+
+    out = tmp_path / "results.json"
+    old = Results.from_json(_results_json())
+    old.write_json(out)
+    before = out.read_text()
+    os.link(out, tmp_path / "kept.json")
+    new = Results.from_json(_results_json() | {"paper": {"note": "second run"}})
+    assert new.write_json(out) == out
+    assert (tmp_path / "kept.json").read_text() == before  # the old inode untouched
+    assert load_results(out).paper == {"note": "second run"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.json", "results.json"]
+
+
+def test_calibrate_from_files_whose_names_alone_pass_the_bound_is_refused_before_any_is_read(tmp_path):
+    """review s53rvoff: ``calibrate`` from more files than its provenance can name (each file's
+    name as given, resolved, and its record: ~13 000 of 90 characters) read every frame, then
+    refused the save, naming "the calibration", not the output. The names alone tell it: refused
+    first, in one line naming the output. The files here are not images at all, so a line about
+    them would mean they were opened; the paths are long (3 500 characters) to keep them few."""
+    from conftest import run_cli
+
+    deep = tmp_path
+    for i in range(14):  # 14 folders of 248 characters: a path under PATH_MAX (4096)
+        deep = deep / (f"{i:02d}" + "d" * 246)
+    deep.mkdir(parents=True)
+    per_file = 3 * len(str(deep / "0000.tif"))  # as given in dark_files/flat_files, and in its record twice
+    n = strict_json.MAX_CHARS // per_file + 20
+    files = [deep / f"{i:04d}.tif" for i in range(n)]
+    for f in files:
+        f.write_bytes(b"not an image")
+    out = tmp_path / "cal.h5"
+    res = run_cli("calibrate", "--dark", *files[: n // 2], "--flat", *files[n // 2 :], "-o", out)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = res.stderr.splitlines()
+    assert line.startswith(f"radiokit calibrate: {out}: not written: "), line
+    assert f"{n} dark and flat files" in line and str(strict_json.MAX_CHARS) in line, line
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["00" + "d" * 246]
+
+
+def test_a_calibration_saved_into_a_file_object_names_the_file_its_bytes_are_for(tmp_path):
+    """``radiokit calibrate`` saves into memory first (its size then known): a provenance past
+    the bound was refused as "the calibration: not written", naming no file. ``name`` names it."""
+    import io
+
+    out = tmp_path / "cal.h5"
+    with pytest.raises(ValueError) as info:
+        _calibration(30_000).save(io.BytesIO(), name=out)
+    message = str(info.value)
+    assert message.startswith(f"{out}: not written: the calibration's provenance"), message
