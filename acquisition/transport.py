@@ -446,6 +446,11 @@ class _GoneMidDrain(serial.SerialException):
     unplugged, the port closed): the command may have reached the controller, or not."""
 
 
+class _ClosedUnderIt(serial.SerialException):
+    """The port was closed while an exchange read from it (:meth:`SerialTransport.close` from
+    another thread, which does not wait for the exchange's lock): a lost link, like any other."""
+
+
 class _DrainTimedOut(serial.SerialTimeoutException):
     """A command written whole whose bytes did not leave the port within the write time-out (its
     output not draining): unlike a write time-out, it may still reach the controller."""
@@ -838,6 +843,13 @@ class SerialTransport:
                             f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
                             "controller; not sent again after a reconnect: X-rays may be on"
                         ) from exc
+                    if isinstance(exc, _ClosedUnderIt):
+                        # close() from another thread: reopened here, the link was open again, its
+                        # port's lock held, after close() had returned -- the close undone (after the
+                        # not-resent check above: its "X-rays may be on" is said first)
+                        raise DeviceError(
+                            f"{self.url}: {command}: link lost ({exc}); not reconnected: the link was closed"
+                        ) from exc
                     if attempt > self.retries:
                         raise DeviceError(
                             f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
@@ -1072,14 +1084,33 @@ class SerialTransport:
         whole line is the late reply of a command that timed out, which is then no longer owed.
         Commands whose late reply has not come within a further reply time-out are forgotten."""
         self._forget_overdue()
-        waiting = ser.in_waiting
-        if waiting:
-            stale = ser.read(waiting)
-            lines = [line for line in re.split(rb"[\r\n]", stale)[:-1] if line.strip()]
-            for line in lines:
-                late = self._owed.pop(0)[0] if self._owed else "an earlier command"
-                self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
-        ser.reset_input_buffer()
+        with self._closed_as_lost(ser, "it flushed the input before a command"):
+            waiting = ser.in_waiting
+            stale = ser.read(waiting) if waiting else b""
+            ser.reset_input_buffer()
+        lines = [line for line in re.split(rb"[\r\n]", stale)[:-1] if line.strip()]
+        for line in lines:
+            late = self._owed.pop(0)[0] if self._owed else "an earlier command"
+            self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
+
+    @contextlib.contextmanager
+    def _closed_as_lost(self, ser, doing: str):
+        """A port found closed under the exchange (:meth:`close` from another thread, which does
+        not take the exchange's lock) raised as the lost link it is (:class:`_ClosedUnderIt`).
+        Why: pyserial's ``in_waiting`` and ``read`` on a port closed under them raise ``TypeError``
+        (its descriptor None), not a link error, and the user got a traceback (session 53). The
+        error is raised as such only where the port is indeed closed: on an open port it is a bug."""
+        try:
+            yield
+        except (TypeError, AttributeError, ValueError, *_LINK_ERRORS) as exc:
+            if ser is not None and ser is self._serial and getattr(ser, "is_open", False):
+                raise
+            raise _ClosedUnderIt(f"the port was closed under the exchange as {doing}: {exc}") from exc
+
+    def _read_some(self, ser, doing: str) -> bytes:
+        """What has come, or one read slice's wait for it (the port's read time-out)."""
+        with self._closed_as_lost(ser, doing):
+            return ser.read(max(1, ser.in_waiting))
 
     def _forget_overdue(self) -> None:
         """Drop the commands owed a late reply whose wait for it has passed."""
@@ -1122,7 +1153,7 @@ class SerialTransport:
                 self._owed.append((command, time.monotonic() + self.timeout_s))
                 self._timed_out = True
                 return
-            buf += ser.read(max(1, ser.in_waiting))
+            buf += self._read_some(ser, f"it awaited the interrupted {command}'s reply")
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
         self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
@@ -1148,7 +1179,7 @@ class SerialTransport:
         first_by, cap = t0 + self.timeout_s / 4, t0 + late_reply_wait_s(self.timeout_s)
         heard = t0 if buf else None
         while True:
-            data = ser.read(max(1, ser.in_waiting))  # blocks one slice at most
+            data = self._read_some(ser, "it awaited a late reply")  # blocks one slice at most
             now = time.monotonic()
             if data:
                 buf += data
@@ -1243,7 +1274,7 @@ class SerialTransport:
                 raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
-            buf += ser.read(max(1, ser.in_waiting))
+            buf += self._read_some(ser, f"it read the reply to {command}")
 
     def dsr_low(self) -> str:
         """A note on a silent controller when the port reads DSR low, else "". L8121.md

@@ -2131,7 +2131,8 @@ def _give_back(found: dict) -> None:
     this thread's delivery: a signal taken by another thread of the caller's, or one that reached
     Python just before the block, runs the handler in place at the next check and may raise here;
     the handlers are then set all the same and its exception raised after them (the first, if
-    several: two at once here are the limit of what Python code can hold together)."""
+    several). Two at once are held; a third at once may leave a handler unset (Python code cannot
+    hold any number together), but never a signal blocked."""
     if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows: nothing to block with
         for sig, handler in found.items():
             signal.signal(sig, handler)
@@ -2140,22 +2141,40 @@ def _give_back(found: dict) -> None:
     blocked = None  # the taken signals the caller had blocked already: left blocked
     error: BaseException | None = None
     todo = list(found.items())
-    while True:
-        try:
-            if blocked is None:
-                blocked = signal.pthread_sigmask(signal.SIG_BLOCK, ()) & taken  # (reads the mask only)
-            signal.pthread_sigmask(signal.SIG_BLOCK, taken)
-            while todo:
-                signal.signal(*todo[0])  # set again if the raise below lands after it: the same handler
-                del todo[0]
-            break
-        except BaseException as exc:  # a handler in place ran (see above) and raised: carry on, raise it after
-            error = error or exc
     try:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, taken - blocked)  # a pending stop: the caller's handler, now
+        while True:
+            try:
+                if blocked is None:
+                    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, ()) & taken  # (reads the mask only)
+                signal.pthread_sigmask(signal.SIG_BLOCK, taken)
+                while todo:
+                    signal.signal(*todo[0])  # set again if the raise below lands after it: the same handler
+                    del todo[0]
+                break
+            except BaseException as exc:  # a handler in place ran (see above) and raised: carry on, raise it after
+                error = error or exc
     finally:
-        if error is not None:
-            raise error
+        # Python runs a handler where its loop jumps back too, outside the try above: a second
+        # stop noted with the first (two at once: a Ctrl-C and a kill) raised there and left the
+        # give-back midway, the signals blocked in this thread for good (review s53rvacq). The
+        # handlers left are put back here; nothing runs a handler between a raise and the
+        # unblock below, so whatever lands, no signal is left blocked.
+        try:
+            while todo:
+                try:
+                    signal.signal(*todo[0])
+                    del todo[0]
+                except BaseException as exc:  # (as above) a third at once can still leave one unset
+                    error = error or exc
+        finally:
+            try:
+                if blocked is not None:
+                    signal.pthread_sigmask(
+                        signal.SIG_UNBLOCK, taken - blocked
+                    )  # a pending stop: the caller's handler, now
+            finally:
+                if error is not None:
+                    raise error
 
 
 def _on_main_thread() -> bool:

@@ -1840,3 +1840,82 @@ def test_main_gives_every_handler_back_when_a_stop_lands_midway_through_the_give
         assert outcome == "the caller's", (code, outcome)
     else:
         assert (code, outcome) == (0, None), capsys.readouterr()  # the caller's handler had it, not the command's
+
+
+@pytest.mark.parametrize("raising", [2, 3])
+def test_main_leaves_no_signal_blocked_when_several_stops_raise_at_once_in_the_give_back(capsys, raising):
+    """Several stops noted at once while ``main()`` puts the caller's handlers back -- a Ctrl-C
+    and a kill (and a Ctrl-\\), taken by another thread of the caller's (this thread's block
+    does not cover it) -- whose caller's handlers all raise (Python's Ctrl-C; sys.exit). The
+    first raise was caught in the give-back's retry; the second came at the retry's jump back,
+    outside it, and left the give-back midway: the taken signals stayed blocked in this thread
+    for good (a lab script's Ctrl-C and kill then never came) and the handlers after SIGTERM's
+    stayed the command's. Now the mask is always as it was; with two at once every handler is
+    back too. Deterministic: a profile hook, as the caller's SIGINT, SIGTERM and SIGHUP handlers
+    are back and its SIGQUIT one not yet, notes the stops at once as their C handler does when
+    a signal lands in another thread (``_thread.interrupt_main(signum)``, one C call for all:
+    pthread_kill from a thread cannot note them without the hook's own code running them).
+    Real emulator on a pseudo-terminal."""
+    import _signal  # what signal.signal calls: the C function a profile hook sees return
+    import _thread
+    import collections
+    import signal
+
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit.cli import _TAKEN, main
+    from radiokit.cli import __file__ as cli_file
+
+    got = []
+
+    def interrupt(signum, frame):  # the caller's Ctrl-C: Python's own way
+        got.append(signum)
+        raise KeyboardInterrupt("the caller's")
+
+    def leave(signum, frame):  # the caller's kill (and Ctrl-\): sys.exit
+        got.append(signum)
+        sys.exit(f"the caller's {signum}")
+
+    def mine(signum, frame):  # the caller's other handlers record
+        got.append(signum)
+
+    raisers = {signal.SIGINT: interrupt, signal.SIGTERM: leave, signal.SIGHUP: leave}
+    ours = {sig: raisers.get(sig, mine) for sig in _TAKEN}
+    stops = [signal.SIGINT, signal.SIGTERM, signal.SIGHUP][:raising]
+    sent = []
+
+    def hook(frame, event, arg):
+        if (
+            event == "c_return"
+            and arg is _signal.signal
+            and not sent
+            and frame.f_back.f_code.co_filename == cli_file  # (frame: signal.py's wrapper)
+            and all(signal.getsignal(sig) is raisers[sig] for sig in raisers)
+            and signal.getsignal(signal.SIGQUIT) is not mine
+        ):
+            sent.extend(stops)
+            collections.deque(map(_thread.interrupt_main, stops), maxlen=0)  # all noted, none run yet
+
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, ())
+    before = {sig: signal.signal(sig, handler) for sig, handler in ours.items()}
+    try:
+        with PtyServer(L8121Model(warmed_up=True)) as server:
+            argv = ["acquire", "source", "off", "--port", server.url, "--dialect", "A"]
+            outcome = None
+            sys.setprofile(hook)
+            try:
+                main(argv)
+            except (KeyboardInterrupt, SystemExit) as exc:
+                outcome = exc
+            finally:
+                sys.setprofile(None)
+                after_mask = signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert sent == stops, "the hook never saw a handler put back"
+    assert after_mask == mask, after_mask  # nothing left blocked in this thread
+    assert sorted(got) == sorted(stops), got  # each stop reached the caller's handler, once
+    assert isinstance(outcome, (KeyboardInterrupt, SystemExit)), (outcome, capsys.readouterr())
+    if raising == 2:
+        assert after == ours, after
