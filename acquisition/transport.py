@@ -1002,7 +1002,9 @@ class SerialTransport:
         cap = self._last_exchange + 2 * self.min_interval_s
         seen = 0  # bytes already waiting came after the last exchange too (the caller paused)
         while True:
-            waiting, now = ser.in_waiting, time.monotonic()
+            with self._closed_as_lost(ser, "it waited out the command spacing"):
+                waiting = ser.in_waiting
+            now = time.monotonic()
             if waiting != seen and now < cap:
                 seen, self._last_exchange = waiting, now
             if (wait := self._last_exchange + self.min_interval_s - now) <= 0:
