@@ -228,9 +228,14 @@ class VirtualBench:
 
         The tube's output, and so the detected open-beam signal, is taken proportional to the
         current and to the square of the voltage relative to the scene's exposure,
-        ``i0 * (ua / ua_scene) * (kv / kv_scene)**2`` (bremsstrahlung yield ~ I kV^2; the real
-        detected signal grows somewhat faster with kV through the spectrum's hardening, which this
-        model ignores). Attenuation does not depend on kV here (a monoenergetic model).
+        ``i0 * (ua / ua_scene) * (kv / kv_scene)**2``: Kramers' law, the bremsstrahlung energy ~
+        I kV^2, which an energy-integrating panel's open beam follows. The L8121-01's spectrum
+        through its beryllium window and 500 mm of air (SpekPy) grows a little more slowly above
+        60 kV (kV^1.83-1.92: 4 % under kV^2 at 100 kV, 5 % over at 40 kV;
+        ``tests/test_sim_physics_closed_form.py``, benchmarks/README.md "The tube's output against
+        its voltage"). What grows faster with kV is the transmission through an object (its
+        attenuation falls with energy), which this model leaves out: attenuation does not depend
+        on kV here (a monoenergetic model).
         """
         ex = self.scene.exposure
         kv = ex.voltage_kv if kv is None else float(kv)
