@@ -265,3 +265,22 @@ def test_a_png_or_dicom_name_without_its_signature_is_refused_not_read_as_raw(tm
     path.write_bytes(bytes(200))
     with pytest.raises(FormatError, match=rf"{name.replace('.', '[.]')}: {said}"):
         read(path)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped"])
+def test_a_damaged_png_is_one_line_without_libpng_s_own(tmp_path, damage):
+    """libpng prints its own "libpng error: ..." to the process's stderr before OpenCV returns
+    nothing: a truncated or corrupted PNG is found by its chunks' lengths and CRCs first."""
+    import subprocess
+    import sys
+
+    path = _png(tmp_path / "cut.png", _texture((200, 300)))
+    data = bytearray(path.read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    else:
+        data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    res = subprocess.run([sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "cut.png" in res.stderr and "libpng" not in res.stderr, res.stderr

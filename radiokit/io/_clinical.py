@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import struct
 import warnings
+import zlib
 
 import numpy as np
 
@@ -78,6 +79,25 @@ def check_png(path, header: dict, budget) -> None:
         )
 
 
+def check_png_chunks(path, buf) -> None:
+    """Every chunk inside the file, its CRC right, and IEND reached. Why: on a truncated or
+    corrupt PNG libpng prints its own "libpng error: ..." line to the process's stderr before
+    OpenCV returns nothing, and the user saw two lines, one not radiokit's."""
+    pos, size = 8, len(buf)
+    while pos + 12 <= size:
+        length, kind = struct.unpack_from(">I4s", buf, pos)
+        if pos + 12 + length > size:
+            break
+        (crc,) = struct.unpack_from(">I", buf, pos + 8 + length)
+        if zlib.crc32(buf[pos + 4 : pos + 8 + length]) != crc:
+            name = kind.decode("latin-1", "replace")
+            raise FormatError(path, f"a PNG whose {name!r} chunk at byte {pos} fails its CRC: corrupt")
+        if kind == b"IEND":
+            return
+        pos += 12 + length
+    raise FormatError(path, f"a PNG truncated: its chunks end at byte {pos} of {size} without IEND")
+
+
 def decode_png(path, header: dict) -> np.ndarray:
     """The PNG's pixels as stored (OpenCV's IMREAD_UNCHANGED: 16-bit samples come back exact, in
     the machine's byte order), as one greyscale (rows, cols) image. A colour PNG whose colour
@@ -87,7 +107,9 @@ def decode_png(path, header: dict) -> np.ndarray:
     import cv2
 
     # imdecode of the bytes, not imread: imread fails silently (None) on a non-ASCII path on Windows
-    data = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    raw = np.fromfile(path, np.uint8)
+    check_png_chunks(path, memoryview(raw))
+    data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
     if data.ndim == 2:
