@@ -102,14 +102,15 @@ def _dicom(
     spacing=None,
 ):
     from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, RLELossless, generate_uid
+    from pydicom.uid import DeflatedExplicitVRLittleEndian, ExplicitVRLittleEndian, RLELossless, generate_uid
 
     frames = np.asarray(frames, np.uint16)
     syntax = syntax or ExplicitVRLittleEndian
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"  # DX for processing
     meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian if syntax == RLELossless else syntax
+    plain = (ExplicitVRLittleEndian, DeflatedExplicitVRLittleEndian)  # (pydicom deflates the dataset as it writes)
+    meta.TransferSyntaxUID = syntax if syntax in plain else ExplicitVRLittleEndian
     ds = Dataset()
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "DX"
@@ -126,7 +127,7 @@ def _dicom(
         ds.ImagerPixelSpacing = list(spacing)
     if syntax == RLELossless:
         ds.compress(RLELossless, frames)
-    elif syntax != ExplicitVRLittleEndian:  # a compressed syntax: encapsulated fragments, never decoded
+    elif syntax not in plain:  # a compressed syntax: encapsulated fragments, never decoded
         from pydicom.encaps import encapsulate
 
         ds.file_meta.TransferSyntaxUID = syntax
@@ -158,12 +159,21 @@ def test_a_dicom_rescale_is_applied_as_the_file_states(tmp_path):
     np.testing.assert_array_equal(ints.data[0], image.astype(np.int64) * 2 - 1000)
 
 
-def test_a_multi_frame_dicom_uncompressed_and_rle(tmp_path):
-    from pydicom.uid import RLELossless
+def test_a_multi_frame_dicom_uncompressed_deflated_and_rle(tmp_path):
+    from pydicom.uid import DeflatedExplicitVRLittleEndian, RLELossless
 
     stack = np.stack([_texture(seed=s) for s in range(3)])
-    for syntax, name in ((None, "plain.dcm"), (RLELossless, "rle.dcm")):
+    for syntax, name in (
+        (None, "plain.dcm"),
+        (DeflatedExplicitVRLittleEndian, "deflated.dcm"),
+        (RLELossless, "rle.dcm"),
+    ):
         path = _dicom(tmp_path / name, stack, syntax=syntax)
+        assert (
+            read(path)
+            .meta["transfer_syntax"]
+            .startswith({None: "Explicit", RLELossless: "RLE"}.get(syntax, "Deflated"))
+        )
         np.testing.assert_array_equal(read(path).data, stack)
         with open_frames(path) as src:  # frame by frame
             np.testing.assert_array_equal(src[2], stack[2])
