@@ -1275,8 +1275,10 @@ def value_scaling(meta: dict) -> dict | None:
     values are the stored counts. Why: the saturation rules are in ADC counts, and judged on
     the values a 12-bit panel's clipped flats (4095 stored, 35.95 after SCALE 0.01 OFFSET -5)
     were never saturated (review s46rio)."""
-    g, cf = meta.get("gdal_scaling"), meta.get("cf_packing")
-    if g:
+    g, cf, dicom = meta.get("gdal_scaling"), meta.get("cf_packing"), meta.get("dicom_rescale")
+    if dicom:  # a DICOM's Modality LUT as the file states it (RescaleSlope / RescaleIntercept)
+        scale, offset, name = dicom["slope"], dicom["intercept"], "DICOM RescaleSlope/Intercept"
+    elif g:
         scale, offset, name = g.get("scale", 1.0), g.get("offset", 0.0), "GDAL SCALE/OFFSET"
     elif cf:
         scale, offset, name = cf["scale_factor"], cf["add_offset"], "CF scale_factor/add_offset"

@@ -115,7 +115,13 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
             return {"hdf5_dataset": dataset}
     if not any(f == "hdf5" for _, f in found):
         path, f = found[0]
-        what = {"tiff": "a TIFF", "itex": "an ITEX .img", "raw": "headerless raw"}.get(f, f)
+        what = {
+            "tiff": "a TIFF",
+            "itex": "an ITEX .img",
+            "raw": "headerless raw",
+            "png": "a PNG",
+            "dicom": "a DICOM file",
+        }.get(f, f)
         # under --format the file's own kind is not what refused it (an HDF5 file was called "a TIFF")
         what = f"read as {fmt} (--format {fmt})" if fmt else what
         others = ", nor is any other file it applies to" if len(found) > 1 else ""
@@ -134,7 +140,7 @@ def _add_raw_hints(p):
     g.add_argument("--dtype", help="pixel type with --shape, e.g. '<f4' for float32 (default '<u2', 16-bit)")
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
-    g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5"], help="skip format detection")
+    g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5", "png", "dicom"], help="skip format detection")
     g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
@@ -154,6 +160,21 @@ def _gdal_scaling(g: dict | None) -> str | None:
         return None
     nodata = f", NODATA {g['nodata']:g} as NaN" if "nodata" in g else ""
     return f"stored * {g['scale']:g} + {g['offset']:g}{nodata}"
+
+
+def _clinical_summary(meta: dict) -> dict:
+    """A DICOM's or PNG's items of note: what its values are (the Modality LUT applied,
+    MONOCHROME1 read as stored) and where its pitch came from."""
+    if meta.get("format") == "png":
+        return {"png_bit_depth": meta.get("png_bit_depth")}
+    r = meta.get("dicom_rescale")
+    return {
+        "modality": meta.get("modality") or None,
+        "transfer_syntax": meta.get("transfer_syntax"),
+        "photometric": meta.get("photometric_note") or meta.get("photometric"),
+        "rescale": f"stored * {r['slope']:g} + {r['intercept']:g} (RescaleSlope/Intercept)" if r else None,
+        "pixel_size_from": meta.get("pixel_size_source"),
+    }
 
 
 def _summary(meta: dict) -> dict:
@@ -207,6 +228,8 @@ def _summary(meta: dict) -> dict:
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
         out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
+    elif fmt in ("dicom", "png"):
+        out = _clinical_summary(meta)
     elif fmt == "calibration":
         out = _calibration_summary(meta)
     elif fmt == "dxchange":  # its three datasets, keyed as an experiment file's frames

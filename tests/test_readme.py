@@ -241,3 +241,13 @@ def test_write_experiment_example_reads_folders_of_single_frame_and_multi_page_t
     assert steps.numbers == (1, 2, 3) and steps.ratios == (0.15, 0.2, 0.25)
     for image, t in zip(steps.images, (0.5, 0.4, 0.3)):
         assert abs(float(np.median(image)) + np.log(t)) < 0.01
+
+
+def test_png_and_dicom_example(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    exec(compile(_block("#### Radiographs from other labs and archives"), "README.md", "exec"), ns)
+    counts = ns["counts"]
+    np.testing.assert_array_equal(ns["png"].data[0], counts)
+    np.testing.assert_array_equal(ns["dx"].data[0], counts.astype(np.int64) * 2 - 1000)
+    assert ns["dx"].meta["bit_depth"] == 12 and abs(ns["dx"].meta["pixel_size_mm"] - 0.139) < 1e-12

@@ -1,4 +1,4 @@
-"""Reading and writing frames: raw C7942 files, TIFF, ITEX ``.img``, and every file radiokit writes.
+"""Reading and writing frames: raw C7942 files, TIFF, ITEX ``.img``, greyscale PNG, DICOM, and every file radiokit writes.
 
 Each file layout radiokit writes has one module here, with its HDF5 paths, a typed record and
 its writer and reader: the experiment (``_experiment``: :class:`ExperimentWriter`,

@@ -18,6 +18,15 @@ from radiokit import _json as strict_json
 from radiokit._names import shown
 from radiokit.errors import FormatError, InputErrors, RadiokitError
 from radiokit.io._budget import check_budget, check_proportion, proportion_can_refuse, stored_extent
+from radiokit.io._clinical import (
+    PNG_MAGIC,
+    check_png,
+    decode_png,
+    dicom_frame,
+    open_dicom,
+    png_header,
+    rescaled_dtype,
+)
 from radiokit.io._experiment import (
     _LENGTH_UNITS_M,
     ENTRY,
@@ -67,7 +76,7 @@ from radiokit.io._tiff_ifds import check_tiff_pages, no_pages_why
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
-FORMATS = ("raw", "tiff", "itex", "hdf5")
+FORMATS = ("raw", "tiff", "itex", "hdf5", "png", "dicom")
 #: the group ``radiokit.calibrate.Calibration.save`` writes by default
 CALIBRATION = "calibration"
 DXCHANGE = "exchange"  # Data Exchange's group: data, data_dark, data_white
@@ -85,6 +94,18 @@ _EXTENSIONS = {
     ".raw": "raw",
     ".bin": "raw",
     ".dat": "raw",
+    ".png": "png",
+    ".dcm": "dicom",
+    ".dicom": "dicom",
+}
+#: what a file named as a format with a signature, without that signature, is told
+_NO_SIGNATURE = {
+    "itex": "wrong magic {head!r}: an ITEX .img starts with b'IM'",
+    "hdf5": "no HDF5 signature: not an HDF5 file, or truncated",
+    "png": "no PNG signature (b'\\x89PNG\\r\\n\\x1a\\n'): not a PNG file, or truncated",
+    # a DICOM without its 128-byte preamble and b'DICM' (ACR-NEMA, or a bare dataset) is not read
+    "dicom": "no DICOM signature (b'DICM' at byte 128): not a DICOM file, or one without its preamble; "
+    "write it again as a DICOM file (pydicom: save_as(..., enforce_file_format=True))",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n", "panel_shape"}
 #: hints that files carrying their own geometry take (n) or let pass (panel_shape: correct compares
@@ -107,10 +128,8 @@ _MAX_RATIO = {8: 1032, 32946: 1032, 5: 2731, 32773: 64}
 _MHD = "read the ElementDataFile it names with shape= and dtype= as it gives them"
 _FOREIGN = (
     (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
-    (128, b"DICM", "a DICOM file", "export its frames as TIFF, or read them with pydicom"),
     # HCImage's and DCAM-API's own format: its header, session and frame footers read as pixels
     (0, b"DCIMG", "a Hamamatsu DCIMG file", "export its frames from HCImage as TIFF"),
-    (0, b"\x89PNG\r\n\x1a\n", "a PNG image", "save the frames as TIFF"),
     (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
     (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
     (0, b"NRRD000", "an NRRD file", "save the frames as TIFF"),
@@ -185,6 +204,8 @@ def sniff(path) -> str:
     if head == _HDF5_MAGIC or (len(head) == 8 and h5py.is_hdf5(path)):
         return "hdf5"
     ext = _EXTENSIONS.get(path.suffix.lower())
+    if ext != "raw" and (head == PNG_MAGIC or start[128:132] == b"DICM"):
+        return "png" if head == PNG_MAGIC else "dicom"
     if head[:2] == b"IM" and ext in (None, "itex"):
         return "itex"
     if not head:
@@ -219,10 +240,8 @@ def sniff(path) -> str:
             f"wrong magic {head[:4]!r}: a TIFF starts with b'II*\\x00' or b'MM\\x00*' (headerless pixels saved "
             "under a TIFF name: format='raw', on the command line --format raw with --shape and --dtype)",
         )
-    if ext == "itex":
-        raise FormatError(path, f"wrong magic {head[:2]!r}: an ITEX .img starts with b'IM'")
-    if ext == "hdf5":
-        raise FormatError(path, "no HDF5 signature: not an HDF5 file, or truncated")
+    if ext in _NO_SIGNATURE:
+        raise FormatError(path, _NO_SIGNATURE[ext].format(head=head[:2]))
     return "raw"
 
 
@@ -312,7 +331,9 @@ class FrameSource:
         _check_file(self.path)
         format = format or sniff(self.path)
         if dataset and format != "hdf5":  # h5py's "file signature not found" named neither
-            what = {"tiff": "a TIFF", "itex": "an ITEX .img"}.get(format, "not HDF5 (no HDF5 signature)")
+            what = {"tiff": "a TIFF", "itex": "an ITEX .img", "png": "a PNG", "dicom": "a DICOM file"}.get(
+                format, "not HDF5 (no HDF5 signature)"
+            )
             raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
         if format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
             # Geometry hints only make sense for headerless data.
@@ -407,6 +428,39 @@ class FrameSource:
         )
 
     _read_itex = _read_raw
+
+    def _open_png(self, dataset=None, **hints):
+        # the IHDR's size against the budget before OpenCV allocates it (a 100-byte PNG may declare 60000 x 60000)
+        self._png = png_header(self.path)
+        check_png(self.path, self._png, self._budget)
+        w, h, depth = self._png["width"], self._png["height"], self._png["depth"]
+        self.n, self.frame_shape, self.dtype = 1, (h, w), np.dtype(np.uint16 if depth == 16 else np.uint8)
+        self.meta.update(n=1, rows=h, cols=w, dtype=str(self.dtype), png_bit_depth=depth)
+        bits = self._png["sbit"] if self._png["sbit"] and self._png["sbit"] < depth else None
+        if depth < 8:  # libpng widens 1-, 2- and 4-bit samples to bytes, unscaled: their top is 2**depth - 1
+            bits = depth
+        self.bits = bits
+        if bits is not None:
+            self.meta["bit_depth"] = bits  # (sBIT: a 12-bit panel's counts in 16-bit words, as TIFF's BitsPerSample)
+        if self._png["colour"] != 0 or self._png["trns"]:
+            self._png_frame = decode_png(self.path, self._png)  # a colour PNG is judged on its channels now
+
+    def _read_png(self, i):
+        frame = getattr(self, "_png_frame", None)
+        if frame is None:
+            frame = decode_png(self.path, self._png)
+        return frame.astype(self.dtype, copy=False)
+
+    def _open_dicom(self, dataset=None, **hints):
+        self._dicom, self._dicom_geo, meta = open_dicom(self.path, self._budget)
+        geo = self._dicom_geo
+        self.n, self.frame_shape = geo["n"], (geo["rows"], geo["cols"])
+        self.dtype = rescaled_dtype(geo["dtype"], geo["slope"], geo["intercept"])
+        self.bits = meta.get("bit_depth") if "dicom_rescale" not in meta else None  # (scaled: value_scaling judges)
+        self.meta.update(meta, dtype=str(self.dtype))
+
+    def _read_dicom(self, i):
+        return dicom_frame(self.path, self._dicom, self._dicom_geo, i)
 
     def _open_tiff(self, dataset=None, **hints):
         # before tifffile builds a page (its pages are the bomb); (pages, bytes charged) kept for

@@ -1,0 +1,312 @@
+"""The radiographs other labs and archives hand over: 8- and 16-bit greyscale PNG, and DICOM.
+
+Both are judged from their headers before any pixel is decoded, as a TIFF's pages are: a PNG's
+IHDR and a DICOM's Rows x Columns x NumberOfFrames x BitsAllocated are what the decoder would
+allocate, and are held to the memory budget first (a 100-byte PNG may declare 60000 x 60000).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import warnings
+import zlib
+
+import numpy as np
+
+from radiokit._names import shown
+from radiokit.errors import FormatError
+from radiokit.io._budget import check_budget
+from radiokit.io._experiment import usable_pixel_sizes
+
+
+class InvertedWarning(UserWarning):
+    """A DICOM's values are MONOCHROME1 (its lowest value shows white), read as stored."""
+
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOURS = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale with alpha", 6: "RGBA"}
+
+
+def png_header(path) -> dict:
+    """A PNG's IHDR (width, height, bit depth, colour type) and, from the chunks before its
+    pixels, whether it has a tRNS (OpenCV then adds an alpha channel) and its sBIT (the
+    significant bits of a greyscale sample: a 12-bit panel's counts in 16-bit words). Only the
+    chunk headers are read: nothing is decoded."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as fh:
+        head = fh.read(33)
+        if head[:8] != PNG_MAGIC:  # format="png" given for another file
+            raise FormatError(path, f"no PNG signature ({PNG_MAGIC!r}): not a PNG file")
+        if len(head) < 33 or head[12:16] != b"IHDR":
+            raise FormatError(path, "a PNG without its IHDR header first: truncated or corrupt")
+        width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
+        if colour not in _PNG_COLOURS or depth not in (1, 2, 4, 8, 16) or not width or not height:
+            raise FormatError(path, f"a PNG whose IHDR is invalid (colour type {colour}, bit depth {depth})")
+        out = {"width": width, "height": height, "depth": depth, "colour": colour, "trns": False, "sbit": None}
+        pos = 33
+        while pos + 8 <= size:  # the chunks up to the first IDAT: bounded by the file's size
+            fh.seek(pos)
+            length, kind = struct.unpack(">I4s", fh.read(8))
+            if kind in (b"IDAT", b"IEND"):
+                break
+            if kind == b"tRNS":
+                out["trns"] = True
+            elif kind == b"sBIT" and colour == 0 and length == 1:
+                out["sbit"] = fh.read(1)[0]
+            pos += 12 + length
+    return out
+
+
+def png_decoded_bytes(header: dict) -> int:
+    """What OpenCV's decode allocates: one byte a sample up to 8 bits, two for 16; greyscale with
+    no tRNS one channel, anything else up to four (BGRA)."""
+    channels = 1 if header["colour"] == 0 and not header["trns"] else 4
+    return header["width"] * header["height"] * channels * (2 if header["depth"] == 16 else 1)
+
+
+def check_png(path, header: dict, budget) -> None:
+    """Refuse, before decoding, a PNG whose declared pixels pass the memory budget, and a palette
+    image (its values are indices into a colour table, not intensities)."""
+    w, h, depth, colour = (header[k] for k in ("width", "height", "depth", "colour"))
+    kind = _PNG_COLOURS[colour]
+    check_budget(path, png_decoded_bytes(header), f"its PNG header's {w}x{h} {depth}-bit {kind} image", budget)
+    if colour == 3:
+        raise FormatError(
+            path,
+            "a palette PNG: its values are indices into a colour table, not intensities; "
+            "export the radiograph as 8- or 16-bit greyscale",
+        )
+
+
+def check_png_chunks(path, buf) -> None:
+    """Every chunk inside the file, its CRC right, and IEND reached. Why: on a truncated or
+    corrupt PNG libpng prints its own "libpng error: ..." line to the process's stderr before
+    OpenCV returns nothing, and the user saw two lines, one not radiokit's."""
+    pos, size = 8, len(buf)
+    while pos + 12 <= size:
+        length, kind = struct.unpack_from(">I4s", buf, pos)
+        if pos + 12 + length > size:
+            break
+        (crc,) = struct.unpack_from(">I", buf, pos + 8 + length)
+        if zlib.crc32(buf[pos + 4 : pos + 8 + length]) != crc:
+            name = kind.decode("latin-1", "replace")
+            raise FormatError(path, f"a PNG whose {name!r} chunk at byte {pos} fails its CRC: corrupt")
+        if kind == b"IEND":
+            return
+        pos += 12 + length
+    raise FormatError(path, f"a PNG truncated: its chunks end at byte {pos} of {size} without IEND")
+
+
+def decode_png(path, header: dict) -> np.ndarray:
+    """The PNG's pixels as stored (OpenCV's IMREAD_UNCHANGED: 16-bit samples come back exact, in
+    the machine's byte order), as one greyscale (rows, cols) image. A colour PNG whose colour
+    channels are equal everywhere and whose alpha, if any, is opaque everywhere is a greyscale
+    image saved as colour, and is read as one channel; any other colour PNG is refused (a
+    viewer's colour rendering is no counts)."""
+    import cv2
+
+    # imdecode of the bytes, not imread: imread fails silently (None) on a non-ASCII path on Windows
+    raw = np.fromfile(path, np.uint8)
+    check_png_chunks(path, memoryview(raw))
+    data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+    if data is None:
+        raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
+    if data.ndim == 2:
+        return data
+    colours = data[..., :3] if data.shape[2] >= 3 else data[..., :1]
+    alpha = data[..., 3] if data.shape[2] == 4 else (data[..., 1] if data.shape[2] == 2 else None)
+    opaque = alpha is None or bool(np.all(alpha == np.iinfo(data.dtype).max))
+    equal = all(np.array_equal(colours[..., 0], colours[..., k]) for k in range(1, colours.shape[2]))
+    if equal and opaque:
+        return np.ascontiguousarray(colours[..., 0])
+    kind = _PNG_COLOURS[header["colour"]]
+    why = "its colour channels differ" if not equal else "its alpha channel is not opaque everywhere"
+    raise FormatError(
+        path,
+        f"a {kind} PNG, {why}: a viewer's colour rendering, not one channel of counts; "
+        "export the radiograph as 8- or 16-bit greyscale",
+    )
+
+
+# -- DICOM ----------------------------------------------------------------------------------------
+def _decodable_syntaxes() -> dict:
+    """The transfer syntaxes pydicom decodes with nothing beyond itself and numpy: uncompressed
+    (little and big endian, deflated) and RLE Lossless. Others (JPEG, JPEG-LS, JPEG 2000, HTJ2K)
+    need plugins that may or may not be installed: refused by name whichever are, so that a file
+    reads the same on every machine (and JPEG baseline is lossy, as a JPEG file is)."""
+    from pydicom import uid
+
+    return {
+        uid.ImplicitVRLittleEndian: "uncompressed",
+        uid.ExplicitVRLittleEndian: "uncompressed",
+        uid.ExplicitVRBigEndian: "uncompressed",
+        uid.DeflatedExplicitVRLittleEndian: "deflated",
+        uid.RLELossless: "RLE Lossless",
+    }
+
+
+def _number(value, default):
+    """A DICOM DS/IS value (or a multi-value's first) as a Python number, ``default`` if absent."""
+    if value is None or value == "":
+        return default
+    if isinstance(value, (list, tuple)) or type(value).__name__ == "MultiValue":
+        value = value[0]
+    number = float(value)
+    return int(number) if number.is_integer() else number
+
+
+def _decodable_syntax(path, ds):
+    """The transfer syntax of ``ds``, refused in one line where there are no pixels to decode or
+    pydicom cannot decode them alone (:func:`_decodable_syntaxes`)."""
+    if "PixelData" not in ds:
+        other = [k for k in ("FloatPixelData", "DoubleFloatPixelData") if k in ds]
+        what = f"its pixels are {other[0]}, which radiokit does not read" if other else "it has no pixel data"
+        raise FormatError(path, f"a DICOM file, but {what} (a report, structured data or a header only)")
+    syntax = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
+    if syntax is None:
+        raise FormatError(
+            path, "a DICOM file without a TransferSyntaxUID in its file meta: its pixels' encoding is unknown"
+        )
+    syntaxes = _decodable_syntaxes()
+    if syntax not in syntaxes:
+        # (pydicom's names say "Lossless" of every lossless syntax; the others are, or may be, lossy)
+        lossy = " (lossy, or may be: not the detector's counts)" if "Lossless" not in syntax.name else ""
+        raise FormatError(
+            path,
+            f"a DICOM file compressed as {syntax.name} ({syntax}){lossy}, which radiokit does not decode: it reads "
+            "uncompressed, deflated and RLE Lossless DICOM; decompress it (gdcmconv --raw, or dcmdjpeg/dcmdjp2k)",
+        )
+    return syntax
+
+
+def open_dicom(path, budget) -> tuple[object, dict, dict]:
+    """The dataset (pixel data deferred, not read), the frames' geometry and ``meta``; refused in
+    one line where its pixels are absent, of a kind a radiograph is not (colour, float), in a
+    transfer syntax pydicom cannot decode alone, or past the budget."""
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    try:
+        # values over 1 KB (the pixels) are read when asked for, not now
+        ds = pydicom.dcmread(path, defer_size="1 KB")
+    except InvalidDicomError as exc:
+        raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    syntax = _decodable_syntax(path, ds)
+    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+    n = int(_number(ds.get("NumberOfFrames"), 1) or 1)
+    samples = int(ds.get("SamplesPerPixel", 1) or 1)
+    allocated = int(ds.get("BitsAllocated", 0) or 0)
+    stored = int(ds.get("BitsStored", allocated) or allocated)
+    signed = int(ds.get("PixelRepresentation", 0) or 0) == 1
+    photometric = str(ds.get("PhotometricInterpretation", "")).strip()
+    if not rows or not cols or allocated not in (8, 16, 32):
+        raise FormatError(
+            path,
+            f"a DICOM file whose pixels are {rows}x{cols} of {allocated} bits allocated: not an image radiokit reads",
+        )
+    if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
+        raise FormatError(
+            path,
+            f"a {photometric or 'colour'} DICOM image ({samples} samples per pixel): a radiograph is one channel of "
+            "counts (MONOCHROME1 or MONOCHROME2)",
+        )
+    if "ModalityLUTSequence" in ds:
+        raise FormatError(
+            path, "a DICOM image with a Modality LUT Sequence (a table, not a slope), which radiokit does not apply"
+        )
+    # what the decoder allocates: every frame at once for RLE (pydicom decodes a frame at a
+    # time only where it can index one: both do here, but the stack is what read() holds)
+    dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
+    check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
+    slope, intercept = _number(ds.get("RescaleSlope"), 1), _number(ds.get("RescaleIntercept"), 0)
+    meta = {
+        "n": n,
+        "rows": rows,
+        "cols": cols,
+        "dtype": str(dtype),
+        "transfer_syntax": f"{syntax.name} ({syntax})",
+        "photometric": photometric,
+        "modality": str(ds.get("Modality", "")),
+    }
+    if stored < allocated and not signed:
+        meta["bit_depth"] = stored  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
+    if (slope, intercept) != (1, 0):
+        # the Modality LUT the file states: values = stored * slope + intercept (value_scaling
+        # judges saturation on the stored counts recovered from them)
+        meta["dicom_rescale"] = {
+            "slope": slope,
+            "intercept": intercept,
+            "type": str(ds.get("RescaleType", "")) or None,
+        }
+        meta["stored_dtype"] = str(dtype)
+    if photometric == "MONOCHROME1":
+        meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
+        _say_inverted(path)
+    meta.update(_dicom_pitch(path, ds))
+    geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
+    return ds, geometry, meta
+
+
+def _say_inverted(path) -> None:
+    """Warn that a MONOCHROME1 file's values are read as stored, and what they mean."""
+    said = InvertedWarning(
+        f"{shown(path)}: MONOCHROME1: its values are read as stored, not inverted; the file says its lowest value "
+        "shows white (in a radiograph, higher values then mean less X-ray signal, not more)"
+    )
+    said.path = str(path)  # the command line shows it once per file, not at each of its opens
+    warnings.warn(said, stacklevel=5)
+
+
+def _dicom_pitch(path, ds) -> dict:
+    """``x_pixel_size`` / ``y_pixel_size`` (metres) from ImagerPixelSpacing (the detector's pitch,
+    at its face), else PixelSpacing (in the patient: the pitch over the magnification, where the
+    writer corrected for it). Both are [row spacing, column spacing] in mm: rows are y."""
+    for name in ("ImagerPixelSpacing", "PixelSpacing"):
+        value = ds.get(name)
+        if value is None or value == "":
+            continue
+        try:
+            row, col = (float(v) * 1e-3 for v in value)
+        except (TypeError, ValueError):
+            return usable_pixel_sizes(path, f"DICOM's {name}", {}, [f"{name} {value!r} is not two numbers"])
+        out = usable_pixel_sizes(path, f"DICOM's {name}", {"x_pixel_size": col, "y_pixel_size": row})
+        out["pixel_size_source"] = name
+        return out
+    return {}
+
+
+def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
+    """Frame ``i`` as stored (pydicom's decoders: the file's byte order to the machine's), with the
+    Modality LUT the file states applied: integers stay integers where slope and intercept are
+    integers and the values fit int32, else float64 (exact for every 32-bit count)."""
+    from pydicom.pixels import pixel_array
+
+    if geometry["n"] > 1:
+        stored = pixel_array(ds, index=i)
+    else:
+        stored = pixel_array(ds)
+    stored = np.asarray(stored).astype(geometry["dtype"].newbyteorder("="), copy=False)
+    return rescaled(stored, geometry["slope"], geometry["intercept"])
+
+
+def rescaled_dtype(dtype, slope, intercept) -> np.dtype:
+    """The values' type after ``stored * slope + intercept``: the stored type where they are 1 and 0,
+    int32 where both are integers and every stored value's image fits it, else float64."""
+    dtype = np.dtype(dtype)
+    if (slope, intercept) == (1, 0):
+        return dtype.newbyteorder("=")
+    if isinstance(slope, int) and isinstance(intercept, int):
+        info = np.iinfo(dtype)
+        ends = [info.min * slope + intercept, info.max * slope + intercept]
+        i32 = np.iinfo(np.int32)
+        if i32.min <= min(ends) and max(ends) <= i32.max:
+            return np.dtype(np.int32)
+    return np.dtype(np.float64)
+
+
+def rescaled(stored: np.ndarray, slope, intercept) -> np.ndarray:
+    out = rescaled_dtype(stored.dtype, slope, intercept)
+    if out == stored.dtype:
+        return stored
+    return stored.astype(out) * out.type(slope) + out.type(intercept)

@@ -1,0 +1,296 @@
+"""PNG and DICOM radiographs, as other labs and archives hand them over: files written here by
+the libraries that write them (OpenCV, pydicom), read back exactly, and refused in one line
+naming the file where they are not one channel of counts or declare more than the budget."""
+
+import json
+import struct
+import warnings
+import zlib
+
+import numpy as np
+import pytest
+
+from radiokit.io import FormatError, open_frames, read
+from tests.conftest import run_cli
+
+
+def _texture(shape=(40, 50), seed=3):
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 65536, size=shape, dtype=np.uint16)
+
+
+def _png(path, image):
+    import cv2
+
+    assert cv2.imwrite(str(path), image)
+    return path
+
+
+# -- PNG --------------------------------------------------------------------------------------
+def test_a_16_bit_png_reads_back_exactly(tmp_path):
+    """Every 16-bit value, the byte order included (PNG stores big-endian), comes back as written."""
+    image = _texture()
+    image[0, :4] = [0, 1, 0x0102, 65535]  # byte-swapped, 0x0102 would read 0x0201
+    got = read(_png(tmp_path / "chest.png", image))
+    assert got.data.shape == (1, 40, 50) and got.data.dtype == np.uint16
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["format"] == "png" and got.meta["png_bit_depth"] == 16
+
+
+def test_an_8_bit_png_reads_as_uint8(tmp_path):
+    image = (_texture() >> 8).astype(np.uint8)
+    got = read(_png(tmp_path / "nih.png", image))
+    assert got.data.dtype == np.uint8
+    np.testing.assert_array_equal(got.data[0], image)
+
+
+def test_an_rgb_png_of_equal_channels_is_one_grey_image_and_of_differing_ones_refused(tmp_path):
+    image = _texture()
+    got = read(_png(tmp_path / "grey.png", np.dstack([image] * 3)))
+    np.testing.assert_array_equal(got.data[0], image)
+    rgba = np.dstack([image] * 3 + [np.full_like(image, 65535)])
+    np.testing.assert_array_equal(read(_png(tmp_path / "grey_rgba.png", rgba)).data[0], image)
+    colour = np.dstack([image, image, image // 2])
+    with pytest.raises(FormatError, match=r"colour\.png: a RGB PNG, its colour channels differ") as info:
+        read(_png(tmp_path / "colour.png", colour))
+    assert "\n" not in str(info.value)
+
+
+def _bomb_png(path, width, height):
+    """A valid PNG signature and IHDR declaring ``width`` x ``height`` 16-bit grey, and no pixels."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    chunk = struct.pack(">I", len(ihdr)) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk + b"\0\0\0\0IEND\xaeB`\x82")
+    return path
+
+
+def test_a_png_declaring_60000_by_60000_is_refused_before_decoding(tmp_path):
+    """7.2 GB declared (60000^2 x 2 bytes) in ~60 bytes: refused from the IHDR against a 1 GB budget,
+    in one line naming the file, before OpenCV allocates anything."""
+    path = _bomb_png(tmp_path / "bomb.png", 60000, 60000)
+    assert path.stat().st_size < 100
+    with pytest.raises(FormatError, match=r"bomb\.png: .*60000x60000 16-bit") as info:
+        read(path, budget="1GiB")
+    assert "\n" not in str(info.value)
+
+
+def test_a_png_sbit_of_12_is_its_saturation_judgement(tmp_path):
+    """sBIT says 12 significant bits in 16-bit words: values above 4095 warn, as a 12-bit TIFF's."""
+    from radiokit.io import BitDepthWarning
+
+    image = np.full((8, 8), 100, np.uint16)
+    image[0, 0] = 5000
+    path = _png(tmp_path / "twelve.png", image)
+    data = path.read_bytes()
+    sbit = struct.pack(">I", 1) + b"sBIT\x0c" + struct.pack(">I", zlib.crc32(b"sBIT\x0c"))
+    path.write_bytes(data[:33] + sbit + data[33:])  # after IHDR, before IDAT
+    with pytest.warns(BitDepthWarning, match=r"exceed the 12-bit range 0\.\.4095"):
+        got = read(path)
+    assert got.meta["bit_depth"] == 12
+
+
+# -- DICOM ------------------------------------------------------------------------------------
+def _dicom(
+    path,
+    frames,
+    *,
+    bits_stored=16,
+    photometric="MONOCHROME2",
+    rescale=None,
+    syntax=None,
+    pixels=True,
+    spacing=None,
+):
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import DeflatedExplicitVRLittleEndian, ExplicitVRLittleEndian, RLELossless, generate_uid
+
+    frames = np.asarray(frames, np.uint16)
+    syntax = syntax or ExplicitVRLittleEndian
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"  # DX for processing
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    plain = (ExplicitVRLittleEndian, DeflatedExplicitVRLittleEndian)  # (pydicom deflates the dataset as it writes)
+    meta.TransferSyntaxUID = syntax if syntax in plain else ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "DX"
+    if pixels:
+        ds.Rows, ds.Columns = frames.shape[-2:]
+        if frames.ndim == 3:
+            ds.NumberOfFrames = frames.shape[0]
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, photometric
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits_stored, bits_stored - 1, 0
+        ds.PixelData = frames.astype("<u2").tobytes()
+    if rescale:
+        ds.RescaleSlope, ds.RescaleIntercept = rescale
+    if spacing:
+        ds.ImagerPixelSpacing = list(spacing)
+    if syntax == RLELossless:
+        ds.compress(RLELossless, frames)
+    elif syntax not in plain:  # a compressed syntax: encapsulated fragments, never decoded
+        from pydicom.encaps import encapsulate
+
+        ds.file_meta.TransferSyntaxUID = syntax
+        ds.PixelData = encapsulate([b"\xff\x4f\xff\x51" + bytes(60)])
+        ds["PixelData"].VR = "OB"
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_a_dicom_frame_reads_back_exactly_with_its_pitch(tmp_path):
+    image = _texture() >> 4  # 12-bit counts
+    path = _dicom(tmp_path / "dx.dcm", image, bits_stored=12, spacing=(0.143, 0.15))
+    got = read(path)
+    assert got.data.shape == (1, 40, 50) and got.data.dtype == np.uint16
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["format"] == "dicom" and got.meta["bit_depth"] == 12
+    # ImagerPixelSpacing is [row, column] in mm: rows are y
+    assert got.meta["y_pixel_size"] == pytest.approx(0.143e-3) and got.meta["x_pixel_size"] == pytest.approx(0.15e-3)
+    assert got.meta["pixel_size_mm"] == pytest.approx(0.15)
+
+
+def test_a_dicom_rescale_is_applied_as_the_file_states(tmp_path):
+    image = _texture() >> 4
+    got = read(_dicom(tmp_path / "ct.dcm", image, bits_stored=12, rescale=(0.5, -1024.25)))
+    np.testing.assert_allclose(got.data[0], image * 0.5 - 1024.25, rtol=0, atol=1e-12)
+    assert got.meta["dicom_rescale"]["slope"] == 0.5 and got.meta["dicom_rescale"]["intercept"] == -1024.25
+    ints = read(_dicom(tmp_path / "int.dcm", image, rescale=(2, -1000)))
+    assert ints.data.dtype == np.int32
+    np.testing.assert_array_equal(ints.data[0], image.astype(np.int64) * 2 - 1000)
+
+
+def test_a_multi_frame_dicom_uncompressed_deflated_and_rle(tmp_path):
+    from pydicom.uid import DeflatedExplicitVRLittleEndian, RLELossless
+
+    stack = np.stack([_texture(seed=s) for s in range(3)])
+    for syntax, name in (
+        (None, "plain.dcm"),
+        (DeflatedExplicitVRLittleEndian, "deflated.dcm"),
+        (RLELossless, "rle.dcm"),
+    ):
+        path = _dicom(tmp_path / name, stack, syntax=syntax)
+        assert (
+            read(path)
+            .meta["transfer_syntax"]
+            .startswith({None: "Explicit", RLELossless: "RLE"}.get(syntax, "Deflated"))
+        )
+        np.testing.assert_array_equal(read(path).data, stack)
+        with open_frames(path) as src:  # frame by frame
+            np.testing.assert_array_equal(src[2], stack[2])
+
+
+def test_monochrome1_is_said_and_read_as_stored(tmp_path):
+    image = _texture()
+    with pytest.warns(UserWarning, match=r"mono1\.dcm: MONOCHROME1: .*not inverted"):
+        got = read(_dicom(tmp_path / "mono1.dcm", image, photometric="MONOCHROME1"))
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["photometric"] == "MONOCHROME1" and "not inverted" in got.meta["photometric_note"]
+
+
+def test_a_compressed_syntax_pydicom_cannot_decode_alone_is_refused_by_name(tmp_path):
+    from pydicom.uid import JPEG2000Lossless, JPEGBaseline8Bit
+
+    for syntax, said in (
+        (JPEG2000Lossless, "JPEG 2000 Image Compression (Lossless Only)"),
+        (JPEGBaseline8Bit, "lossy"),
+    ):
+        path = _dicom(tmp_path / "j.dcm", _texture(), syntax=syntax)
+        with pytest.raises(FormatError, match=r"j\.dcm: a DICOM file compressed as ") as info:
+            read(path)
+        assert said in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_dicom_without_pixels_is_refused(tmp_path):
+    with pytest.raises(FormatError, match=r"sr\.dcm: a DICOM file, but it has no pixel data"):
+        read(_dicom(tmp_path / "sr.dcm", _texture(), pixels=False))
+
+
+def test_a_dicom_declaring_more_than_the_budget_is_refused_before_decoding(tmp_path):
+    path = _dicom(tmp_path / "big.dcm", _texture((4, 4)))
+    import pydicom
+
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 60000, 60000, 10  # the pixels stay 32 bytes
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"big\.dcm: .*10 frame\(s\) of 60000x60000") as info:
+        read(path, budget="1GiB")
+    assert "\n" not in str(info.value)
+
+
+# -- the command line -------------------------------------------------------------------------
+def test_info_on_a_png_and_a_dicom(tmp_path):
+    image = _texture() >> 4
+    png = _png(tmp_path / "a.png", image)
+    dcm = _dicom(tmp_path / "b.dcm", image, bits_stored=12, rescale=(2, 0), spacing=(0.1, 0.1))
+    for path in (png, dcm):
+        res = run_cli("info", path, "--json")
+        assert res.returncode == 0, res.stderr
+        out = json.loads(res.stdout)
+        text = json.dumps(out)
+        assert "40" in text and "50" in text, out
+    assert "RescaleSlope" in run_cli("info", dcm).stdout
+
+
+def test_register_two_16_bit_pngs_finds_a_shift(tmp_path):
+    """A smooth texture moved by (0.6, -1.3) px: the registered field, read from two 16-bit PNGs,
+    is the shift to < 0.1 px in the interior (16-bit quantisation of a 0..60000 texture is far below)."""
+    from scipy import ndimage
+
+    from radiokit.io import read_registration
+    from radiokit.register import warp
+
+    rng = np.random.default_rng(11)
+    base = ndimage.gaussian_filter(rng.random((96, 128)), 3)
+    base = (base - base.min()) / np.ptp(base)
+    shift = np.stack([np.full((96, 128), 0.6), np.full((96, 128), -1.3)]).astype(np.float32)
+    fixed = warp(base.astype(np.float32), shift)
+    for name, image in (("f.png", fixed), ("m.png", base)):
+        _png(tmp_path / name, np.round(image * 60000).astype(np.uint16))
+    with warnings.catch_warnings():
+        res = run_cli("register", tmp_path / "f.png", tmp_path / "m.png", "--preset", "fast", "-o", tmp_path / "r.h5")
+    assert res.returncode in (0, 1), res.stderr
+    d = read_registration(tmp_path / "r.h5").displacement[:, 16:-16, 16:-16]
+    assert abs(float(np.median(d[0])) - 0.6) < 0.1 and abs(float(np.median(d[1])) + 1.3) < 0.1
+
+
+def test_info_says_monochrome1_once_in_one_line(tmp_path):
+    """``info`` opens a file twice (to judge, then to read): the MONOCHROME1 warning is shown once."""
+    import os
+    import subprocess
+    import sys
+
+    path = _dicom(tmp_path / "inv.dcm", _texture(), photometric="MONOCHROME1")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONWARNINGS"}
+    res = subprocess.run(
+        [sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("\n") == 1 and "inv.dcm: MONOCHROME1" in res.stderr and ".py:" not in res.stderr, res.stderr
+    assert "not inverted" in res.stdout
+
+
+@pytest.mark.parametrize("name, said", [("x.png", "no PNG signature"), ("x.dcm", "no DICOM signature")])
+def test_a_png_or_dicom_name_without_its_signature_is_refused_not_read_as_raw(tmp_path, name, said):
+    path = tmp_path / name
+    path.write_bytes(bytes(200))
+    with pytest.raises(FormatError, match=rf"{name.replace('.', '[.]')}: {said}"):
+        read(path)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped"])
+def test_a_damaged_png_is_one_line_without_libpng_s_own(tmp_path, damage):
+    """libpng prints its own "libpng error: ..." to the process's stderr before OpenCV returns
+    nothing: a truncated or corrupted PNG is found by its chunks' lengths and CRCs first."""
+    import subprocess
+    import sys
+
+    path = _png(tmp_path / "cut.png", _texture((200, 300)))
+    data = bytearray(path.read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    else:
+        data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    res = subprocess.run([sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "cut.png" in res.stderr and "libpng" not in res.stderr, res.stderr
