@@ -57,6 +57,16 @@ _SPACING_SLICE_S = 0.005  # how often the spacing's wait looks for a byte that r
 _LINE_ENDS = (b"\r", b"\n")
 
 
+def _waiting(ser) -> int:
+    """The bytes waiting to be read. A port closed under an exchange (another thread's close) has
+    no descriptor, and pyserial's poll of a local port then raises TypeError: a lost link, as a
+    gone adapter's EIO is (the spacing's wait polls it for 60 ms; it escaped as a traceback)."""
+    try:
+        return ser.in_waiting
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise serial.SerialException(f"the port was closed: {exc}") from exc
+
+
 def late_reply_wait_s(timeout_s: float) -> float:
     """The cap on :meth:`SerialTransport._await_late_reply`'s wait after a reply time-out of
     ``timeout_s``: a quarter of it for the late reply to begin, and one read slice more for it to
@@ -990,7 +1000,7 @@ class SerialTransport:
         cap = self._last_exchange + 2 * self.min_interval_s
         seen = 0  # bytes already waiting came after the last exchange too (the caller paused)
         while True:
-            waiting, now = ser.in_waiting, time.monotonic()
+            waiting, now = _waiting(ser), time.monotonic()
             if waiting != seen and now < cap:
                 seen, self._last_exchange = waiting, now
             if (wait := self._last_exchange + self.min_interval_s - now) <= 0:
@@ -1072,7 +1082,7 @@ class SerialTransport:
         whole line is the late reply of a command that timed out, which is then no longer owed.
         Commands whose late reply has not come within a further reply time-out are forgotten."""
         self._forget_overdue()
-        waiting = ser.in_waiting
+        waiting = _waiting(ser)
         if waiting:
             stale = ser.read(waiting)
             lines = [line for line in re.split(rb"[\r\n]", stale)[:-1] if line.strip()]
@@ -1122,7 +1132,7 @@ class SerialTransport:
                 self._owed.append((command, time.monotonic() + self.timeout_s))
                 self._timed_out = True
                 return
-            buf += ser.read(max(1, ser.in_waiting))
+            buf += ser.read(max(1, _waiting(ser)))
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
         self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
@@ -1148,7 +1158,7 @@ class SerialTransport:
         first_by, cap = t0 + self.timeout_s / 4, t0 + late_reply_wait_s(self.timeout_s)
         heard = t0 if buf else None
         while True:
-            data = ser.read(max(1, ser.in_waiting))  # blocks one slice at most
+            data = ser.read(max(1, _waiting(ser)))  # blocks one slice at most
             now = time.monotonic()
             if data:
                 buf += data
@@ -1243,7 +1253,7 @@ class SerialTransport:
                 raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
-            buf += ser.read(max(1, ser.in_waiting))
+            buf += ser.read(max(1, _waiting(ser)))
 
     def dsr_low(self) -> str:
         """A note on a silent controller when the port reads DSR low, else "". L8121.md

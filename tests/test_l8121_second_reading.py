@@ -10,12 +10,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
 from l8121_second_reading import Controller, Knobs
 
+from acquisition.errors import DeviceError
 from acquisition.l8121 import L8121
+from acquisition.transport import SerialTransport
 
 
 def _cli(*args: str, hook=None) -> subprocess.CompletedProcess:
@@ -42,6 +45,25 @@ def test_the_spacing_counts_from_the_last_byte_of_a_cr_lf_reply(dialect):
             assert src.interlock_closed()
     assert c.breaches == []
     assert None not in [reply for _, _, reply in c.log]
+
+
+def test_a_port_closed_during_the_spacing_is_a_lost_link():
+    # the spacing's wait polls the port for bytes; a port closed under it (another thread's close)
+    # has no descriptor, and pyserial's poll then raises TypeError: it must read as a lost link
+    # (a DeviceError naming the command), not escape as a traceback. Real pty, real close.
+    with Controller(Knobs(dialect="A")) as c:
+        link = SerialTransport(c.port, timeout_s=0.5, min_interval_s=0.3, retries=0)
+        try:
+            link.open()
+            assert link.query("STS") == "STS 2"
+            closer = threading.Timer(0.1, link._serial.close)  # a third into the spacing
+            closer.start()
+            with pytest.raises(DeviceError, match="STS: link lost"):
+                link.query("STS")
+            closer.join()
+        finally:
+            link.close()
+    assert c.sent() == ["STS"]  # nothing written to the closed port
 
 
 def test_b_waits_for_srb_ready_before_its_control_commands():
