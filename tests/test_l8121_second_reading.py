@@ -18,7 +18,7 @@ from l8121_second_reading import Controller, Knobs
 
 from acquisition.errors import DeviceError
 from acquisition.l8121 import L8121
-from acquisition.transport import SerialTransport
+from acquisition.transport import SerialTransport, exchange_longest_s, late_reply_wait_s
 
 
 def _cli(*args: str, hook=None) -> subprocess.CompletedProcess:
@@ -64,6 +64,39 @@ def test_a_port_closed_during_the_spacing_is_a_lost_link():
         finally:
             link.close()
     assert c.sent() == ["STS"]  # nothing written to the closed port
+
+
+def test_a_line_never_quiet_delays_a_command_within_one_exchange_at_its_longest():
+    # bytes during the spacing restart it, up to a cap: a line that never falls quiet (a NUL every
+    # 5 ms, a stuck line) delays the next command -- the switch-off's XOF too -- boundedly, and
+    # exchange_longest_s (the guardian's kill bound adds these up) must count that delay
+    spacing, reply_s = 0.1, 0.5
+    noisy, seen = threading.Event(), {}
+
+    def noise(c: Controller) -> None:
+        while noisy.is_set():
+            os.write(c.master, b"\x00")
+            time.sleep(0.005)
+
+    def arrived(c: Controller) -> None:  # the command reached the model: the delay it had
+        noisy.clear()
+        seen["gap"] = time.monotonic() - c._last_reply_end
+
+    with Controller(Knobs(dialect="A")) as c:
+        c.when("STS", 2, arrived)
+        link = SerialTransport(c.port, timeout_s=reply_s, min_interval_s=spacing, retries=0)
+        try:
+            link.open()
+            link.query("STS")
+            noisy.set()
+            writer = threading.Thread(target=noise, args=(c,), daemon=True)
+            writer.start()
+            link.query("STS")  # (its reply may begin with a NUL: only its timing is read)
+            writer.join()
+        finally:
+            link.close()
+    assert seen["gap"] >= 2 * spacing  # the noise did hold it back (up to the cap)
+    assert late_reply_wait_s(reply_s) + seen["gap"] + reply_s <= exchange_longest_s(reply_s, spacing)
 
 
 def test_b_waits_for_srb_ready_before_its_control_commands():
