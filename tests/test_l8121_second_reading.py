@@ -16,7 +16,7 @@ import time
 import pytest
 from l8121_second_reading import Controller, Knobs
 
-from acquisition.errors import DeviceError
+from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import L8121
 from acquisition.transport import SerialTransport, exchange_longest_s, late_reply_wait_s
 
@@ -110,7 +110,22 @@ def test_b_waits_for_srb_ready_before_its_control_commands():
         src.off()
     assert c.xray_commands == [("XON", 60.0, 250)]
     assert not c.emitting()
+    assert "BUSY" in [reply for _, cmd, reply in c.log if cmd == "SRB"]  # it did wait
     assert "ERROR" not in [reply for _, cmd, reply in c.log if cmd != "Enter"]
+
+
+@pytest.mark.parametrize("call", ["on", "warm_up"])
+def test_b_reads_the_state_again_after_waiting_for_srb(call):
+    # the state (STS, DAG) was read before SRB said BUSY; the wait may last ready_timeout_s (30 s),
+    # and what kept the unit busy may have changed it: an overload meanwhile -- L8121.md: never XON
+    # in overload -- is found by reading the state again, before any preset or XON
+    knobs = Knobs(dialect="B", b_busy_s=0.6, warmup_needed=call == "warm_up")
+    with Controller(knobs) as c, L8121(c.port, dialect="B") as src:
+        c.when("SRB", 1, lambda c: c.overload())  # while it is BUSY
+        with pytest.raises(SourceFault, match="overload"):
+            src.on(60, 250) if call == "on" else src.warm_up(progress=False)
+    assert "BUSY" in [reply for _, cmd, reply in c.log if cmd == "SRB"]  # it did wait
+    assert not [cmd for cmd in c.sent() if cmd.split(" ")[0] in ("PHV", "PCU", "XON")]
 
 
 def _hold(word: str, seconds: float):
