@@ -2799,7 +2799,16 @@ class L8121:
             return 0.0
         seen = self._reconnects()
         if state != SourceState.WARMING_UP:  # a start command follows: its settings first
-            self._require_remote("warm-up not started")  # B's start is XON, as on()'s
+            if self._require_remote("warm-up not started"):  # B's start is XON, as on()'s
+                # SRB said BUSY and was waited for (up to ready_timeout_s): the state that chose
+                # to start is read again, as on()'s (an overload meanwhile: never XON then)
+                again = self.settled_status()
+                if again != state:
+                    self._warm_up_needed(again, force)  # its refusal: overload, X-rays on, not ready
+                    raise DeviceError(
+                        f"{self.port}: warm-up not started: the state changed while SRB said BUSY "
+                        f"({state.said} before, {again.said} now); run it again"
+                    )
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
                 raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
@@ -3068,6 +3077,15 @@ class L8121:
         return reading
 
     def _require_ready(self) -> None:
+        self._require_standby()
+        if self._require_remote("X-rays not switched on"):
+            # B's SRB said BUSY and was waited for, up to ready_timeout_s: what kept the unit busy
+            # may have changed the state read before (an overload, and L8121.md: never XON in
+            # overload): read again, as the presets and XON follow
+            self._require_standby()
+
+    def _require_standby(self) -> None:
+        """Standby with the warm-up done and the interlock closed, or the refusal saying why."""
         state = self.settled_status()
         reasons = {
             # which query said so: an A unit whose SWE reads 2 when none is due is configured, not
@@ -3094,7 +3112,6 @@ class L8121:
             raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.said})")
         if not self.interlock_closed():
             raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
-        self._require_remote("X-rays not switched on")
 
     def _require_warm_up_still_done(self) -> None:
         """B: ``DAG`` still ``END``, read last before ``XON``. B's ``XON`` starts a warm-up when
@@ -3119,22 +3136,25 @@ class L8121:
                 "exposure; nothing that emits was sent"
             )
 
-    def _require_remote(self, what: str) -> None:
+    def _require_remote(self, what: str) -> bool:
         """B: the operate switch on REMOTE (``SRL``) before anything that leads to an ``XON``
-        (L8121.md: "remote control needs REMOTE"); connect's check may be minutes old."""
+        (L8121.md: "remote control needs REMOTE"); connect's check may be minutes old. Returns
+        whether ``SRB`` said ``BUSY`` and was waited for (:meth:`_await_remote_ready`): what was
+        read before is then that old."""
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
             raise DeviceError(f"{self.port}: {what}: the operate switch is {switch}, not REMOTE")
-        self._await_remote_ready(what)
+        return self._await_remote_ready(what)
 
-    def _await_remote_ready(self, what: str) -> None:
+    def _await_remote_ready(self, what: str) -> bool:
         """B: wait while ``SRB`` says ``BUSY``, queries only, for at most ``ready_timeout_s``.
         L8121.md lists ``SRB`` (``READY`` or ``BUSY``, the remote operation state) and the L8121-02
         driver polls it; the notes do not say a busy unit refuses control commands, but a unit that
         did refused the presets at once (session 53, a second model of the notes). A unit that
-        refuses ``SRB`` (a mix of dialects) is taken as ready: its control commands say if not."""
+        refuses ``SRB`` (a mix of dialects) is taken as ready: its control commands say if not.
+        Returns whether it waited (``BUSY`` was read)."""
         query = self.dialect.readings.get("remote_state")
         if query is None:
-            return
+            return False
         limit = self.config.ready_timeout_s
         t0 = time.monotonic()
         told = False
@@ -3143,7 +3163,7 @@ class L8121:
                 reply = self._exchange(query.command)
             except DeviceError as exc:
                 if getattr(exc, "refused", False):
-                    return
+                    return told
                 raise
             try:
                 busy = query.parse(reply) == "BUSY"
@@ -3155,7 +3175,7 @@ class L8121:
             if not busy:
                 if told:
                     logger.info("%s: remote operation READY after %.1f s", self.port, waited)
-                return
+                return told
             if waited >= limit:
                 raise DeviceError(
                     f"{self.port}: {what}: the controller's remote operation stayed BUSY (SRB) for "

@@ -67,10 +67,11 @@ def late_reply_wait_s(timeout_s: float) -> float:
 def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
     """One :meth:`SerialTransport.query` at its longest on a link that stays up (a reconnect
     repeats it, after the port's reopening and the identity check): the wait for a late reply after
-    a time-out (:func:`late_reply_wait_s`, its last read a slice past it), the command spacing, the
-    reply time-out and two read slices past it (the grace for a stalled process, the last read's
-    overrun)."""
-    return late_reply_wait_s(timeout_s) + _READ_SLICE_S + min_interval_s + timeout_s + 2 * _READ_SLICE_S
+    a time-out (:func:`late_reply_wait_s`, its last read a slice past it), the command spacing at
+    its longest (three spacings: bytes restart it for two, on a line that never falls quiet --
+    :meth:`SerialTransport._wait_spacing`), the reply time-out and two read slices past it (the
+    grace for a stalled process, the last read's overrun)."""
+    return late_reply_wait_s(timeout_s) + _READ_SLICE_S + 3 * min_interval_s + timeout_s + 2 * _READ_SLICE_S
 
 
 #: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
@@ -996,9 +997,11 @@ class SerialTransport:
         meanwhile restarts it. L8121.md allows replies ending in CR LF, and a line is read at its
         CR; a unit whose LF came 30 ms after its CR had answered only then, and a command 60 ms
         after the CR reached it 30 ms after its reply, and was lost by a controller model that
-        needs its ~50 ms (session 53). A byte restarts it only within one more spacing: a line
-        that never falls quiet (a stuck one sending NULs) is noise, left to the flush, and costs
-        a command at most one spacing more."""
+        needs its ~50 ms (session 53). A byte restarts it only within two spacings of the last
+        exchange (a caller that paused finds the late LF waiting, and its time is not known): a
+        line that never falls quiet (a stuck one sending NULs) is noise, left to the flush, and
+        costs a command at most two spacings more, three in all (:func:`exchange_longest_s`
+        counts three)."""
         cap = self._last_exchange + 2 * self.min_interval_s
         seen = 0  # bytes already waiting came after the last exchange too (the caller paused)
         while True:

@@ -67,6 +67,7 @@ class Knobs:
     b_current_format: str = "{:.0f}"  # SCU/SPC number format
     b_aging_mode: int = 1  # DAG's m: 0 none, 1 after 8 h idle, 2 one month, 3 three months
     b_busy_s: float = 0.0  # SRB says BUSY this long after start, and control commands are refused
+    b_busy_srb: int = 0  # ... or for this many SRB queries, however long they take (a loaded machine)
     initial_kv: float = 40.0  # what the presets hold at power-on (left from the last session)
     initial_ua: float = 10.0
     junk_at_open: bytes = b""  # bytes waiting in the driver's input before its first command
@@ -87,6 +88,7 @@ class Controller:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self.t0 = time.monotonic()
+        self._srb_busy_left = self.k.b_busy_srb
         self.state = "WARMUP_NEEDED" if self.k.warmup_needed else "STANDBY"
         if self.k.self_test_s > 0:
             self.state = self.k.power_on_state
@@ -254,7 +256,7 @@ class Controller:
         return err
 
     def _busy(self) -> bool:
-        return time.monotonic() - self.t0 < self.k.b_busy_s
+        return time.monotonic() - self.t0 < self.k.b_busy_s or self._srb_busy_left > 0
 
     # ---- dialect B --------------------------------------------------------------------------
     def _reply_b(self, cmd: str) -> str:
@@ -277,6 +279,8 @@ class Controller:
             "SRL": "REMOTE" if self.k.remote else self.k.srl_word,
             "SRB": "BUSY" if self._busy() else "READY",
         }
+        if cmd == "SRB":  # counted apart: the table above is built for every command
+            self._srb_busy_left = max(0, self._srb_busy_left - 1)
         if cmd in queries:
             return queries[cmd]
         head, _, arg = cmd.partition(" ")

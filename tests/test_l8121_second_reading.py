@@ -10,12 +10,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
 from l8121_second_reading import Controller, Knobs
 
+from acquisition.errors import DeviceError, SourceFault
 from acquisition.l8121 import L8121
+from acquisition.transport import SerialTransport, exchange_longest_s, late_reply_wait_s
 
 
 def _cli(*args: str, hook=None) -> subprocess.CompletedProcess:
@@ -44,18 +47,85 @@ def test_the_spacing_counts_from_the_last_byte_of_a_cr_lf_reply(dialect):
     assert None not in [reply for _, _, reply in c.log]
 
 
+def test_a_port_closed_during_the_spacing_is_a_lost_link():
+    # the spacing's wait polls the port for bytes; a port closed under it (another thread's close)
+    # has no descriptor, and pyserial's poll then raises TypeError: it must read as a lost link
+    # (a DeviceError naming the command), not escape as a traceback. Real pty, real close.
+    with Controller(Knobs(dialect="A")) as c:
+        link = SerialTransport(c.port, timeout_s=0.5, min_interval_s=0.3, retries=0)
+        try:
+            link.open()
+            assert link.query("STS") == "STS 2"
+            closer = threading.Timer(0.1, link._serial.close)  # a third into the spacing
+            closer.start()
+            with pytest.raises(DeviceError, match="STS: link lost"):
+                link.query("STS")
+            closer.join()
+        finally:
+            link.close()
+    assert c.sent() == ["STS"]  # nothing written to the closed port
+
+
+def test_a_line_never_quiet_delays_a_command_within_one_exchange_at_its_longest():
+    # bytes during the spacing restart it, up to a cap: a line that never falls quiet (a NUL every
+    # 5 ms, a stuck line) delays the next command -- the switch-off's XOF too -- boundedly, and
+    # exchange_longest_s (the guardian's kill bound adds these up) must count that delay
+    spacing, reply_s = 0.1, 0.5
+    noisy, seen = threading.Event(), {}
+
+    def noise(c: Controller) -> None:
+        while noisy.is_set():
+            os.write(c.master, b"\x00")
+            time.sleep(0.005)
+
+    def arrived(c: Controller) -> None:  # the command reached the model: the delay it had
+        noisy.clear()
+        seen["gap"] = time.monotonic() - c._last_reply_end
+
+    with Controller(Knobs(dialect="A")) as c:
+        c.when("STS", 2, arrived)
+        link = SerialTransport(c.port, timeout_s=reply_s, min_interval_s=spacing, retries=0)
+        try:
+            link.open()
+            link.query("STS")
+            noisy.set()
+            writer = threading.Thread(target=noise, args=(c,), daemon=True)
+            writer.start()
+            link.query("STS")  # (its reply may begin with a NUL: only its timing is read)
+            writer.join()
+        finally:
+            link.close()
+    assert seen["gap"] >= 2 * spacing  # the noise did hold it back (up to the cap)
+    assert late_reply_wait_s(reply_s) + seen["gap"] + reply_s <= exchange_longest_s(reply_s, spacing)
+
+
 def test_b_waits_for_srb_ready_before_its_control_commands():
     # L8121.md lists B's SRB, READY or BUSY, "remote operation state", which the L8121-02 driver
     # polls in its cycle; a unit busy at first refuses control commands: the presets waited for
     # READY instead of failing at the first PHV.
-    knobs = Knobs(dialect="B", b_busy_s=0.6, ramp_s=0.05)
+    knobs = Knobs(dialect="B", b_busy_srb=2, ramp_s=0.05)
     with Controller(knobs) as c, L8121(c.port, dialect="B") as src:
         src.on(60, 250)
         assert c.emitting()
         src.off()
     assert c.xray_commands == [("XON", 60.0, 250)]
     assert not c.emitting()
+    assert "BUSY" in [reply for _, cmd, reply in c.log if cmd == "SRB"]  # it did wait
     assert "ERROR" not in [reply for _, cmd, reply in c.log if cmd != "Enter"]
+
+
+@pytest.mark.parametrize("call", ["on", "warm_up"])
+def test_b_reads_the_state_again_after_waiting_for_srb(call):
+    # the state (STS, DAG) was read before SRB said BUSY; the wait may last ready_timeout_s (30 s),
+    # and what kept the unit busy may have changed it: an overload meanwhile -- L8121.md: never XON
+    # in overload -- is found by reading the state again, before any preset or XON
+    knobs = Knobs(dialect="B", b_busy_srb=3, warmup_needed=call == "warm_up")
+    with Controller(knobs) as c, L8121(c.port, dialect="B") as src:
+        c.when("SRB", 1, lambda c: c.overload())  # while it is BUSY
+        with pytest.raises(SourceFault, match="overload"):
+            src.on(60, 250) if call == "on" else src.warm_up(progress=False)
+    assert "BUSY" in [reply for _, cmd, reply in c.log if cmd == "SRB"]  # it did wait
+    assert not [cmd for cmd in c.sent() if cmd.split(" ")[0] in ("PHV", "PCU", "XON")]
 
 
 def _hold(word: str, seconds: float):
