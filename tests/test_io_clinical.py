@@ -294,3 +294,73 @@ def test_a_damaged_png_is_one_line_without_libpng_s_own(tmp_path, damage):
     res = subprocess.run([sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "cut.png" in res.stderr and "libpng" not in res.stderr, res.stderr
+
+
+# -- review s53rvfmt --------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "slope, intercept, said",
+    [
+        (0, 0, "RescaleSlope is 0"),
+        ("NaN", 0, "not a finite number"),
+        ("inf", 0, "not a finite number"),
+        (0.5, "-inf", "not a finite number"),
+        # 65535 * 1e305 is past float64's 1.8e308: it read as a frame of inf with an overflow warning
+        (1e305, 0, "past float64's range"),
+    ],
+)
+def test_a_dicom_rescale_of_zero_not_finite_or_past_the_type_is_refused(tmp_path, slope, intercept, said):
+    """A slope of 0 read every pixel as the intercept, NaN or inf as frames of NaN, silently: the
+    file's Modality LUT is refused in one line, as a CF packing's is."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own say on a DS of NaN or inf as it writes
+        path = _dicom(tmp_path / "lut.dcm", _texture(), rescale=(slope, intercept))
+        with pytest.raises(FormatError, match=rf"lut\.dcm: .*{said}") as info:
+            open_frames(path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("frames", [1, 3])
+def test_a_dicom_whose_pixel_data_is_shorter_than_declared_is_refused_at_open(tmp_path, frames):
+    """Uncompressed pixels hold rows x cols x frames x BitsAllocated/8 bytes: fewer is a truncated
+    or mis-described file, refused on opening (it opened, and each frame failed at its decode)."""
+    import pydicom
+
+    path = _dicom(tmp_path / "cut.dcm", np.stack([_texture((6, 8))] * frames) if frames > 1 else _texture((6, 8)))
+    ds = pydicom.dcmread(path)
+    ds.PixelData = ds.PixelData[: 6 * 8 * 2 * frames - 10]
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=rf"cut\.dcm: .*{6 * 8 * 2 * frames - 10} bytes of pixel data") as info:
+        open_frames(path)
+    assert "\n" not in str(info.value)
+
+
+def test_a_tiny_dicom_declaring_a_gigabyte_of_frames_is_refused_at_open(tmp_path):
+    """32 frames of 4096 x 4096 x 16 bits (1 GiB) declared by a file of under a kilobyte: within a
+    2 GiB budget, but refused from the PixelData's length before anything is allocated."""
+    import pydicom
+
+    path = _dicom(tmp_path / "gig.dcm", _texture((4, 4)))
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 4096, 4096, 32
+    ds.save_as(path)
+    assert path.stat().st_size < 1024
+    with pytest.raises(FormatError, match=r"gig\.dcm: .*32 bytes of pixel data"):
+        read(path, budget="2GiB")
+
+
+def test_a_big_endian_dicom_reads_exactly(tmp_path):
+    """Explicit VR Big Endian (retired, still in old archives): every 16-bit value as written."""
+    import pydicom
+    from pydicom.uid import ExplicitVRBigEndian
+
+    image = _texture()
+    image[0, :3] = [1, 0x0102, 65535]  # byte-swapped, 0x0102 would read 0x0201
+    path = _dicom(tmp_path / "be.dcm", image)
+    ds = pydicom.dcmread(path)
+    ds.file_meta.TransferSyntaxUID = ExplicitVRBigEndian
+    ds.PixelData = image.astype(">u2").tobytes()
+    pydicom.dcmwrite(path, ds, little_endian=False, implicit_vr=False, enforce_file_format=True)
+    assert pydicom.dcmread(path).file_meta.TransferSyntaxUID == ExplicitVRBigEndian
+    got = read(path)
+    assert got.meta["transfer_syntax"].startswith("Explicit VR Big Endian")
+    np.testing.assert_array_equal(got.data[0], image)

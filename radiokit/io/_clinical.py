@@ -219,7 +219,9 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
+    _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
     slope, intercept = _number(ds.get("RescaleSlope"), 1), _number(ds.get("RescaleIntercept"), 0)
+    _check_rescale(path, dtype, slope, intercept)
     meta = {
         "n": n,
         "rows": rows,
@@ -246,6 +248,50 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     meta.update(_dicom_pitch(path, ds))
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
     return ds, geometry, meta
+
+
+def _check_pixel_length(path, ds, syntax, declared: int) -> None:
+    """Refuse uncompressed pixel data shorter than its header declares. Why: such a file opened and
+    each frame then failed at its decode, and a file of a few hundred bytes declaring a gigabyte of
+    frames had its stack allocated first. The element's length is read, not its value (deferred);
+    an encapsulated (RLE) element's length is undefined and its frames are judged as decoded."""
+    from pydicom.uid import RLELossless
+
+    if syntax == RLELossless:
+        return
+    item = ds.get_item("PixelData")
+    length = getattr(item, "length", None)
+    if length is None:  # a DataElement already read (a small file): its bytes are at hand
+        length = len(item.value or b"")
+    if length == 0xFFFFFFFF or length >= declared:
+        return
+    raise FormatError(
+        path,
+        f"a DICOM file with {length} bytes of pixel data where its header declares {declared} "
+        "(Rows x Columns x NumberOfFrames x BitsAllocated): truncated, or its header is wrong",
+    )
+
+
+def _check_rescale(path, dtype, slope, intercept) -> None:
+    """Refuse a Modality LUT that is no slope of these values, as a CF packing's is: a slope of 0
+    (every pixel the intercept), NaN or inf (frames of NaN), or one that takes the stored type's
+    range past float64's (frames of inf, and numpy's overflow warnings naming no file)."""
+    import math
+
+    if not (math.isfinite(slope) and math.isfinite(intercept)):
+        raise FormatError(
+            path, f"a DICOM file whose RescaleSlope {slope} or RescaleIntercept {intercept} is not a finite number"
+        )
+    if slope == 0:
+        raise FormatError(path, f"a DICOM file whose RescaleSlope is 0: every pixel would read as {intercept:g}")
+    info = np.iinfo(dtype)
+    ends = [float(info.min) * slope + intercept, float(info.max) * slope + intercept]
+    if not all(math.isfinite(e) for e in ends):
+        raise FormatError(
+            path,
+            f"a DICOM file whose RescaleSlope {slope:g} and RescaleIntercept {intercept:g} take its {dtype} values "
+            "past float64's range: not a Modality LUT of these values",
+        )
 
 
 def _say_inverted(path) -> None:
