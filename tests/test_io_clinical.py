@@ -364,3 +364,74 @@ def test_a_big_endian_dicom_reads_exactly(tmp_path):
     got = read(path)
     assert got.meta["transfer_syntax"].startswith("Explicit VR Big Endian")
     np.testing.assert_array_equal(got.data[0], image)
+
+
+def _chunk(kind, data):
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _png16_by_hand(image, *, interlace=0, before=b"", after=b"", idat_bytes=None):
+    """A 16-bit greyscale PNG written chunk by chunk (filter 0 on every row), Adam7 where asked:
+    OpenCV writes neither interlaced nor extra chunks."""
+    h, w = image.shape
+    be = image.astype(">u2")
+    passes = [(0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1)]
+    subs = [be[y::dy, x::dx] for y, x, dy, dx in passes] if interlace else [be]
+    raw = b"".join(b"\0" + row.tobytes() for sub in subs if sub.size for row in sub)
+    idat = zlib.compress(raw)[:idat_bytes]
+    ihdr = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, interlace)
+    head = b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + before
+    return head + _chunk(b"IDAT", idat) + after + _chunk(b"IEND", b"")
+
+
+def test_an_adam7_16_bit_png_with_a_gamma_reads_its_stored_values(tmp_path):
+    """Interlaced samples land where they belong, and gAMA/cHRM are a display's business: the
+    values are the stored ones, not gamma-corrected."""
+    image = _texture((37, 29))
+    image[0, :3] = [1, 0x0102, 65535]
+    gamma = _chunk(b"gAMA", struct.pack(">I", 45455)) + _chunk(b"cHRM", bytes(32))
+    path = tmp_path / "adam7.png"
+    path.write_bytes(_png16_by_hand(image, interlace=1, before=gamma))
+    np.testing.assert_array_equal(read(path).data[0], image)
+
+
+def test_text_and_icc_chunks_are_never_decoded_nor_libpng_heard(tmp_path, capfd):
+    """A zTXt, iTXt and iCCP each inflating to 100 MB (a decompression bomb in a text chunk), and
+    a profile libpng finds wrong: the pixels read exactly, and libpng's own "libpng warning: ..."
+    lines (a second voice on the user's terminal) are not printed."""
+    image = _texture((20, 30))
+    bomb = zlib.compress(bytes(100_000_000), 9)
+    extra = (
+        _chunk(b"zTXt", b"Comment\0\0" + bomb)
+        + _chunk(b"iTXt", b"Comment\0\1\0\0\0" + bomb)
+        + _chunk(b"iCCP", b"prof\0\0" + bomb)
+    )
+    path = tmp_path / "chunks.png"
+    path.write_bytes(_png16_by_hand(image, before=extra))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    assert "libpng" not in capfd.readouterr().err
+
+
+def test_a_png_whose_pixel_stream_is_cut_is_one_line(tmp_path, capfd):
+    """IDAT's zlib stream cut short inside a chunk whose CRC is right (a writer killed, then the
+    file closed properly): refused in one line naming the file, and libpng's "Not enough image
+    data" not printed."""
+    path = tmp_path / "short.png"
+    path.write_bytes(_png16_by_hand(_texture((40, 50)), idat_bytes=300))
+    with pytest.raises(FormatError, match=r"short\.png: a PNG whose pixel data .*ends early") as info:
+        read(path)
+    assert "\n" not in str(info.value) and "libpng" not in capfd.readouterr().err
+
+
+def test_an_animated_png_is_refused_not_read_as_its_first_frame(tmp_path):
+    """An APNG's acTL declares its frames; OpenCV reads the default image alone, silently."""
+    image = _texture((10, 12))
+    actl = _chunk(b"acTL", struct.pack(">II", 2, 0))
+    fctl = _chunk(b"fcTL", struct.pack(">IIIIIHHBB", 0, 12, 10, 0, 0, 1, 1, 0, 0))
+    raw = b"".join(b"\0" + row.tobytes() for row in image[::-1].astype(">u2"))
+    later = _chunk(b"fcTL", struct.pack(">IIIIIHHBB", 1, 12, 10, 0, 0, 1, 1, 0, 0))
+    later += _chunk(b"fdAT", struct.pack(">I", 2) + zlib.compress(raw))
+    path = tmp_path / "anim.png"
+    path.write_bytes(_png16_by_hand(image, before=actl + fctl, after=later))
+    with pytest.raises(FormatError, match=r"anim\.png: an animated PNG \(APNG\) of 2 frames"):
+        read(path)

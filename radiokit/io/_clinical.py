@@ -54,6 +54,8 @@ def png_header(path) -> dict:
                 out["trns"] = True
             elif kind == b"sBIT" and colour == 0 and length == 1:
                 out["sbit"] = fh.read(1)[0]
+            elif kind == b"acTL" and length == 8:  # APNG's animation control: its frame count first
+                out["frames"] = struct.unpack(">I", fh.read(4))[0]
             pos += 12 + length
     return out
 
@@ -71,6 +73,12 @@ def check_png(path, header: dict, budget) -> None:
     w, h, depth, colour = (header[k] for k in ("width", "height", "depth", "colour"))
     kind = _PNG_COLOURS[colour]
     check_budget(path, png_decoded_bytes(header), f"its PNG header's {w}x{h} {depth}-bit {kind} image", budget)
+    if header.get("frames", 1) > 1:  # OpenCV decodes the default image alone and says nothing of the rest
+        raise FormatError(
+            path,
+            f"an animated PNG (APNG) of {header['frames']} frames, of which OpenCV reads one: "
+            "save the frames as a TIFF stack, or one PNG each",
+        )
     if colour == 3:
         raise FormatError(
             path,
@@ -79,11 +87,58 @@ def check_png(path, header: dict, budget) -> None:
         )
 
 
-def check_png_chunks(path, buf) -> None:
-    """Every chunk inside the file, its CRC right, and IEND reached. Why: on a truncated or
-    corrupt PNG libpng prints its own "libpng error: ..." line to the process's stderr before
-    OpenCV returns nothing, and the user saw two lines, one not radiokit's."""
-    pos, size = 8, len(buf)
+#: the chunks that make a PNG's pixels; the rest (text, ICC profiles, gamma, APNG's frames) are
+#: dropped before OpenCV sees the file (:func:`decode_png`)
+_PIXEL_CHUNKS = (b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND")
+#: Adam7's passes: (first row, first column, row step, column step)
+_ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
+_PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def png_pixel_bytes(header: dict, interlaced: bool) -> int:
+    """The bytes IDAT's zlib stream inflates to: each row (of each Adam7 pass) a filter byte
+    and its samples, packed to whole bytes."""
+    w, h = header["width"], header["height"]
+    bits = _PNG_SAMPLES[header["colour"]] * header["depth"]
+    passes = _ADAM7 if interlaced else ((0, 0, 1, 1),)
+    total = 0
+    for y, x, dy, dx in passes:
+        rows, cols = -(-(h - y) // dy), -(-(w - x) // dx)
+        if rows > 0 and cols > 0:
+            total += rows * (1 + -(-cols * bits // 8))
+    return total
+
+
+def _check_idat_stream(path, header: dict, interlaced: bool, idat) -> None:
+    """Refuse pixel data whose zlib stream ends (or breaks) before the image does. Why: a cut
+    stream inside a chunk whose CRC is right passed :func:`check_png_chunks`, and libpng printed
+    "libpng error: Not enough image data" before the one line. Inflated a block at a time,
+    counted and dropped: no more memory than a block."""
+    need, got = png_pixel_bytes(header, interlaced), 0
+    inflate = zlib.decompressobj()
+    try:
+        for piece in idat:
+            data = inflate.decompress(piece, 1 << 22)
+            got += len(data)
+            while inflate.unconsumed_tail and got < need:
+                data = inflate.decompress(inflate.unconsumed_tail, 1 << 22)
+                got += len(data)
+            if got >= need:
+                break
+    except zlib.error as exc:
+        raise FormatError(path, f"a PNG whose pixel data does not inflate ({exc}): corrupt") from None
+    if got < need:
+        raise FormatError(
+            path, f"a PNG whose pixel data ends early: {got} of its image's {need} bytes (truncated or corrupt)"
+        )
+
+
+def check_png_chunks(path, buf) -> list:
+    """Every chunk inside the file, its CRC right, and IEND reached; the chunks' (kind, start,
+    end) spans returned. Why: on a truncated or corrupt PNG libpng prints its own "libpng
+    error: ..." line to the process's stderr before OpenCV returns nothing, and the user saw two
+    lines, one not radiokit's."""
+    pos, size, spans = 8, len(buf), []
     while pos + 12 <= size:
         length, kind = struct.unpack_from(">I4s", buf, pos)
         if pos + 12 + length > size:
@@ -92,8 +147,9 @@ def check_png_chunks(path, buf) -> None:
         if zlib.crc32(buf[pos + 4 : pos + 8 + length]) != crc:
             name = kind.decode("latin-1", "replace")
             raise FormatError(path, f"a PNG whose {name!r} chunk at byte {pos} fails its CRC: corrupt")
+        spans.append((bytes(kind), pos, pos + 12 + length))
         if kind == b"IEND":
-            return
+            return spans
         pos += 12 + length
     raise FormatError(path, f"a PNG truncated: its chunks end at byte {pos} of {size} without IEND")
 
@@ -108,7 +164,16 @@ def decode_png(path, header: dict) -> np.ndarray:
 
     # imdecode of the bytes, not imread: imread fails silently (None) on a non-ASCII path on Windows
     raw = np.fromfile(path, np.uint8)
-    check_png_chunks(path, memoryview(raw))
+    view = memoryview(raw)
+    spans = check_png_chunks(path, view)
+    interlaced = bool(raw[28])  # IHDR's last byte (png_header read its others)
+    _check_idat_stream(path, header, interlaced, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
+    # the pixels' chunks alone: libpng inflates text and ICC chunks (a 100 KB zTXt may hold 100 MB)
+    # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
+    # incorrect sRGB profile"); gamma is a display's business, never applied to the values
+    kept = [view[a:b] for k, a, b in spans if k in _PIXEL_CHUNKS]
+    if len(kept) < len(spans):
+        raw = np.frombuffer(b"".join([bytes(view[:8]), *kept]), np.uint8)
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
