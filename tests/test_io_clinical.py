@@ -435,3 +435,35 @@ def test_an_animated_png_is_refused_not_read_as_its_first_frame(tmp_path):
     path.write_bytes(_png16_by_hand(image, before=actl + fctl, after=later))
     with pytest.raises(FormatError, match=r"anim\.png: an animated PNG \(APNG\) of 2 frames"):
         read(path)
+
+
+def test_a_dicom_without_its_preamble_reads_as_pydicom_reads_it(tmp_path):
+    """The 128-byte preamble and b'DICM' are missing from files many older tools wrote, and
+    pydicom reads them (force=True): so does radiokit, a .dcm whose first bytes are a DICOM
+    element's tag; its file meta's syntax where it has one, else the encoding pydicom finds."""
+    import io
+
+    import pydicom
+    from pydicom.dataset import Dataset
+
+    image = _texture() >> 4  # 12-bit counts
+    full = _dicom(tmp_path / "full.dcm", image, bits_stored=12).read_bytes()
+    meta_only = tmp_path / "nopreamble.dcm"
+    meta_only.write_bytes(full[132:])  # the file meta group first, then the dataset
+    got = read(meta_only)
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["bit_depth"] == 12
+    ds = Dataset()  # a bare dataset, implicit VR little endian, as ACR-NEMA-era tools wrote
+    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *image.shape, 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+    ds.PixelData = image.astype("<u2").tobytes()
+    buf = io.BytesIO()
+    pydicom.dcmwrite(buf, ds, implicit_vr=True, little_endian=True)
+    bare = tmp_path / "bare.dcm"
+    bare.write_bytes(buf.getvalue())
+    got = read(bare)
+    np.testing.assert_array_equal(got.data[0], image)
+    assert (
+        got.meta["transfer_syntax"].startswith("Implicit VR Little Endian")
+        and "no file meta" in got.meta["transfer_syntax"]
+    )

@@ -25,6 +25,19 @@ class InvertedWarning(UserWarning):
 
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def dicom_bare_start(head: bytes) -> bool:
+    """Whether ``head`` may open a DICOM file written without its 128-byte preamble and b'DICM':
+    a little-endian tag's group first, even (a standard group, not a private one) and from the
+    file meta's (0002) to the pixels' (7FE0); a bare dataset starts at its lowest group present
+    (0008, or 0028 where it has only the image's)."""
+    if len(head) < 8:
+        return False
+    group = int.from_bytes(head[:2], "little")
+    return group % 2 == 0 and 0x0002 <= group <= 0x7FE0
+
+
 _PNG_COLOURS = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale with alpha", 6: "RGBA"}
 
 
@@ -245,18 +258,45 @@ def _decodable_syntax(path, ds):
     return syntax
 
 
+def _syntax_found(ds) -> bool:
+    """Give a dataset read without its file meta the transfer syntax pydicom found its elements
+    in (its decoders need one), and say whether it had to."""
+    from pydicom import uid
+    from pydicom.dataset import FileMetaDataset
+
+    if "TransferSyntaxUID" in getattr(ds, "file_meta", {}) or "PixelData" not in ds:
+        return False
+    implicit, little = ds.original_encoding
+    ds.file_meta = getattr(ds, "file_meta", None) or FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = (
+        uid.ImplicitVRLittleEndian if implicit else uid.ExplicitVRLittleEndian if little else uid.ExplicitVRBigEndian
+    )
+    return True
+
+
+def _read_dataset(path):
+    """The dataset, its pixels deferred, and whether its transfer syntax had to be found (no
+    file meta). Without the preamble and b'DICM' (older tools, ACR-NEMA-era datasets) pydicom
+    reads a file where told to (force=True), as a user would expect radiokit to; sniff let such a
+    .dcm through only where its first bytes are a DICOM element's group."""
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    with open(path, "rb") as fh:
+        bare = fh.read(132)[128:132] != b"DICM"
+    try:
+        # values over 1 KB (the pixels) are read when asked for, not now
+        ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
+    except (InvalidDicomError, EOFError, OSError, ValueError, struct.error) as exc:
+        raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    return ds, bare and _syntax_found(ds)
+
+
 def open_dicom(path, budget) -> tuple[object, dict, dict]:
     """The dataset (pixel data deferred, not read), the frames' geometry and ``meta``; refused in
     one line where its pixels are absent, of a kind a radiograph is not (colour, float), in a
     transfer syntax pydicom cannot decode alone, or past the budget."""
-    import pydicom
-    from pydicom.errors import InvalidDicomError
-
-    try:
-        # values over 1 KB (the pixels) are read when asked for, not now
-        ds = pydicom.dcmread(path, defer_size="1 KB")
-    except InvalidDicomError as exc:
-        raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    ds, found = _read_dataset(path)
     syntax = _decodable_syntax(path, ds)
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
     n = int(_number(ds.get("NumberOfFrames"), 1) or 1)
@@ -292,7 +332,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         "rows": rows,
         "cols": cols,
         "dtype": str(dtype),
-        "transfer_syntax": f"{syntax.name} ({syntax})",
+        "transfer_syntax": f"{syntax.name} ({syntax}"
+        + ("; no file meta: the encoding pydicom found)" if found else ")"),
         "photometric": photometric,
         "modality": str(ds.get("Modality", "")),
     }
