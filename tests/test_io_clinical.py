@@ -467,3 +467,28 @@ def test_a_dicom_without_its_preamble_reads_as_pydicom_reads_it(tmp_path):
         got.meta["transfer_syntax"].startswith("Implicit VR Little Endian")
         and "no file meta" in got.meta["transfer_syntax"]
     )
+
+
+@pytest.mark.parametrize("value", ["0", "", "-2", "2.5"])
+def test_a_dicom_number_of_frames_not_a_count(tmp_path, value):
+    """NumberOfFrames 0 or empty (invalid; pydicom assumes 1) reads the one frame the pixel data
+    holds, without pydicom's warning, which named no file, once per decode; a negative or
+    fractional one is refused in one line (-2 was numpy's "negative dimensions are not allowed")."""
+    import pydicom
+
+    image = _texture((4, 5))
+    path = _dicom(tmp_path / "nf.dcm", image)
+    ds = pydicom.dcmread(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own say on an IS of 2.5 as it writes
+        ds.NumberOfFrames = value
+        ds.save_as(path)
+    if value in ("0", ""):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            np.testing.assert_array_equal(read(path).data, image[None])
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pydicom's say on reading an IS of 2.5: the refusal is ours
+            with pytest.raises(FormatError, match=rf"nf\.dcm: .*NumberOfFrames {value}"):
+                read(path)

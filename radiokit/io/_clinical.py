@@ -274,6 +274,25 @@ def _syntax_found(ds) -> bool:
     return True
 
 
+def _frame_count(path, ds) -> int:
+    """NumberOfFrames as a count: absent, empty or 0 (invalid; pydicom assumes 1) is one frame,
+    and the dataset is told so (pydicom warned at each decode, naming no file; the pixel data's
+    length is checked against it next); a negative or fractional value is refused in one line
+    (-2 reached numpy as "negative dimensions are not allowed")."""
+    value = ds.get("NumberOfFrames")
+    try:
+        number = _number(value, 0)
+    except (TypeError, ValueError):
+        number = None
+    if number == 0:
+        if "NumberOfFrames" in ds:
+            ds.NumberOfFrames = 1
+        return 1
+    if not isinstance(number, int) or number < 0:
+        raise FormatError(path, f"a DICOM file whose NumberOfFrames {value} is not a count of frames")
+    return number
+
+
 def _read_dataset(path):
     """The dataset, its pixels deferred, and whether its transfer syntax had to be found (no
     file meta). Without the preamble and b'DICM' (older tools, ACR-NEMA-era datasets) pydicom
@@ -299,7 +318,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     ds, found = _read_dataset(path)
     syntax = _decodable_syntax(path, ds)
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
-    n = int(_number(ds.get("NumberOfFrames"), 1) or 1)
+    n = _frame_count(path, ds)
     samples = int(ds.get("SamplesPerPixel", 1) or 1)
     allocated = int(ds.get("BitsAllocated", 0) or 0)
     stored = int(ds.get("BitsStored", allocated) or allocated)
