@@ -797,11 +797,35 @@ def _calibration_from_files(args, th):
     except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
         raise ValueError(
             f"darks {', '.join(map(shown, args.dark))}, flats {', '.join(map(shown, args.flat))}: {exc}"
+            + _inverted_hint(files, hints)
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
     cal.provenance["inputs"] = [one.record() for one in inputs.values()]
     return cal
+
+
+def _inverted_hint(files: dict, hints: dict) -> str:
+    """What a refused calibration's line adds where darks or flats are MONOCHROME1 DICOM (their
+    lowest value shows white, read as stored). Why: such darks read above their flats, and the
+    refusal blamed light on the panel. Only DICOM files are opened again (headers, no pixels),
+    and only on a refusal."""
+    from radiokit.io import open_frames, sniff
+
+    inverted = []
+    for kind, paths in files.items():
+        for p in paths:
+            if sniff(p) == "dicom":
+                with open_frames(p, **hints[kind]) as src:
+                    if src.meta.get("photometric") == "MONOCHROME1":
+                        inverted.append(p)
+    if not inverted:
+        return ""
+    return (
+        f" ({', '.join(map(shown, dict.fromkeys(inverted)))} {'is' if len(inverted) == 1 else 'are'} MONOCHROME1, "
+        "read as stored: higher values are less signal there; store them inverted as MONOCHROME2, "
+        "2**BitsStored - 1 - value, and calibrate again)"
+    )
 
 
 # -- correct -----------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ the libraries that write them (OpenCV, pydicom), read back exactly, and refused 
 naming the file where they are not one channel of counts or declare more than the budget."""
 
 import json
+import re
 import struct
 import warnings
 import zlib
@@ -492,3 +493,18 @@ def test_a_dicom_number_of_frames_not_a_count(tmp_path, value):
             warnings.simplefilter("ignore")  # pydicom's say on reading an IS of 2.5: the refusal is ours
             with pytest.raises(FormatError, match=rf"nf\.dcm: .*NumberOfFrames {value}"):
                 read(path)
+
+
+def test_calibrate_from_monochrome1_darks_and_flats_names_the_inversion(tmp_path):
+    """MONOCHROME1 darks and flats (stored 4095 - counts) read as stored put the darks above the
+    flats: the refusal blamed light on the panel; it now says which files are MONOCHROME1 and
+    what to do, in its one line."""
+    rng = np.random.default_rng(5)
+    dark = np.round(100 + rng.normal(0, 3, (3, 16, 20))).astype(np.uint16)
+    flat = np.round(3000 + rng.normal(0, 30, (3, 16, 20))).astype(np.uint16)
+    d = _dicom(tmp_path / "d1.dcm", 4095 - dark, bits_stored=12, photometric="MONOCHROME1")
+    f = _dicom(tmp_path / "f1.dcm", 4095 - flat, bits_stored=12, photometric="MONOCHROME1")
+    res = run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2, res.stderr
+    refusal = [line for line in res.stderr.splitlines() if "InvertedWarning" not in line]
+    assert len(refusal) == 1 and re.search(r"d1\.dcm, \S*f1\.dcm are MONOCHROME1, read as stored", refusal[0])
