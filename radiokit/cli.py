@@ -1645,7 +1645,7 @@ def _add_info(sub):
         "files",
         nargs="+",
         type=Path,
-        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
     )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -1671,7 +1671,7 @@ def _add_calibrate(sub):
         "--dark",
         nargs="+",
         type=Path,
-        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
     )
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
@@ -1709,7 +1709,7 @@ def _add_correct(sub):
         "frames",
         nargs="+",
         type=Path,
-        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
+        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM), or one experiment file without --cal",
     )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(
