@@ -508,3 +508,32 @@ def test_calibrate_from_monochrome1_darks_and_flats_names_the_inversion(tmp_path
     assert res.returncode == 2, res.stderr
     refusal = [line for line in res.stderr.splitlines() if "InvertedWarning" not in line]
     assert len(refusal) == 1 and re.search(r"d1\.dcm, \S*f1\.dcm are MONOCHROME1, read as stored", refusal[0])
+
+
+def test_a_tiny_rle_dicom_declaring_a_gigabyte_is_refused_at_open(tmp_path):
+    """RLE (PackBits) encodes at most 128 bytes in 2: a file under 1/64 of the bytes it declares
+    cannot hold them, and is refused on opening, within the budget, before the stack is allocated."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    path = _dicom(tmp_path / "rle.dcm", np.stack([_texture((4, 4))] * 2), syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 4096, 4096, 32
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"rle\.dcm: .*RLE") as info:
+        read(path, budget="2GiB")
+    assert "\n" not in str(info.value)
+
+
+def test_an_rle_frame_that_does_not_decode_is_one_line(tmp_path):
+    """pydicom's decode failure is several lines (one per plugin tried): said in one."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    path = _dicom(tmp_path / "rle.dcm", np.stack([_texture((4, 4))] * 2), syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns = 16, 16  # 1 KiB declared: within what RLE may encode in this file
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"rle\.dcm: frame 0 cannot be decoded") as info:
+        read(path)
+    assert "\n" not in str(info.value)

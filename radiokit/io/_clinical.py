@@ -379,10 +379,19 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     """Refuse uncompressed pixel data shorter than its header declares. Why: such a file opened and
     each frame then failed at its decode, and a file of a few hundred bytes declaring a gigabyte of
     frames had its stack allocated first. The element's length is read, not its value (deferred);
-    an encapsulated (RLE) element's length is undefined and its frames are judged as decoded."""
+    an encapsulated (RLE) element's length is undefined: the file's size bounds what it may
+    declare, and its frames are judged as decoded."""
     from pydicom.uid import RLELossless
 
     if syntax == RLELossless:
+        # PackBits encodes at most 128 bytes in 2: a file under 1/64 of what it declares cannot
+        # hold it (its fragments' lengths would need the pixels read to sum)
+        if declared > 64 * os.path.getsize(path):
+            raise FormatError(
+                path,
+                f"a DICOM file of {os.path.getsize(path)} bytes declaring {declared} bytes of RLE Lossless "
+                "pixels, more than RLE can encode in it (64:1 at most): truncated, or its header is wrong",
+            )
         return
     item = ds.get_item("PixelData")
     length = getattr(item, "length", None)

@@ -1952,7 +1952,8 @@ class FrameSource:
         except FormatError:
             raise
         except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
-            raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
+            # (in one line: pydicom's says what each of its decoders raised, a line each)
+            raise FormatError(self.path, f"frame {i} cannot be decoded: {' '.join(str(exc).split())}") from exc
         self._check_bits(frame)
         return frame
 
@@ -2038,7 +2039,8 @@ class FrameSource:
             try:
                 ds.read_direct(out, np.s_[a:b], np.s_[a:b])
             except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
-                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
+                said = " ".join(str(exc).split())
+                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {said}") from exc
         for i in range(self.n):
             stored = out[i]
             frame = self._hdf5_frame(stored)
