@@ -797,11 +797,35 @@ def _calibration_from_files(args, th):
     except ValueError as exc:  # the library's "flats are not brighter than darks" names no file
         raise ValueError(
             f"darks {', '.join(map(shown, args.dark))}, flats {', '.join(map(shown, args.flat))}: {exc}"
+            + _inverted_hint(files, hints)
         ) from exc
     cal.provenance["dark_files"] = [str(p) for p in args.dark]
     cal.provenance["flat_files"] = [str(p) for p in args.flat]
     cal.provenance["inputs"] = [one.record() for one in inputs.values()]
     return cal
+
+
+def _inverted_hint(files: dict, hints: dict) -> str:
+    """What a refused calibration's line adds where darks or flats are MONOCHROME1 DICOM (their
+    lowest value shows white, read as stored). Why: such darks read above their flats, and the
+    refusal blamed light on the panel. Only DICOM files are opened again (headers, no pixels),
+    and only on a refusal."""
+    from radiokit.io import open_frames, sniff
+
+    inverted = []
+    for kind, paths in files.items():
+        for p in paths:
+            if sniff(p) == "dicom":
+                with open_frames(p, **hints[kind]) as src:
+                    if src.meta.get("photometric") == "MONOCHROME1":
+                        inverted.append(p)
+    if not inverted:
+        return ""
+    return (
+        f" ({', '.join(map(shown, dict.fromkeys(inverted)))} {'is' if len(inverted) == 1 else 'are'} MONOCHROME1, "
+        "read as stored: higher values are less signal there; store them inverted as MONOCHROME2, "
+        "2**BitsStored - 1 - value, and calibrate again)"
+    )
 
 
 # -- correct -----------------------------------------------------------------------------------
@@ -1621,7 +1645,7 @@ def _add_info(sub):
         "files",
         nargs="+",
         type=Path,
-        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
     )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -1647,7 +1671,7 @@ def _add_calibrate(sub):
         "--dark",
         nargs="+",
         type=Path,
-        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img",
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
     )
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
@@ -1685,7 +1709,7 @@ def _add_correct(sub):
         "frames",
         nargs="+",
         type=Path,
-        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset) or Hamamatsu ITEX .img), or one experiment file without --cal",
+        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM), or one experiment file without --cal",
     )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(

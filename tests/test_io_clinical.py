@@ -3,6 +3,7 @@ the libraries that write them (OpenCV, pydicom), read back exactly, and refused 
 naming the file where they are not one channel of counts or declare more than the budget."""
 
 import json
+import re
 import struct
 import warnings
 import zlib
@@ -294,3 +295,245 @@ def test_a_damaged_png_is_one_line_without_libpng_s_own(tmp_path, damage):
     res = subprocess.run([sys.executable, "-m", "radiokit.cli", "info", str(path)], capture_output=True, text=True)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "cut.png" in res.stderr and "libpng" not in res.stderr, res.stderr
+
+
+# -- review s53rvfmt --------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "slope, intercept, said",
+    [
+        (0, 0, "RescaleSlope is 0"),
+        ("NaN", 0, "not a finite number"),
+        ("inf", 0, "not a finite number"),
+        (0.5, "-inf", "not a finite number"),
+        # 65535 * 1e305 is past float64's 1.8e308: it read as a frame of inf with an overflow warning
+        (1e305, 0, "past float64's range"),
+    ],
+)
+def test_a_dicom_rescale_of_zero_not_finite_or_past_the_type_is_refused(tmp_path, slope, intercept, said):
+    """A slope of 0 read every pixel as the intercept, NaN or inf as frames of NaN, silently: the
+    file's Modality LUT is refused in one line, as a CF packing's is."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own say on a DS of NaN or inf as it writes
+        path = _dicom(tmp_path / "lut.dcm", _texture(), rescale=(slope, intercept))
+        with pytest.raises(FormatError, match=rf"lut\.dcm: .*{said}") as info:
+            open_frames(path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("frames", [1, 3])
+def test_a_dicom_whose_pixel_data_is_shorter_than_declared_is_refused_at_open(tmp_path, frames):
+    """Uncompressed pixels hold rows x cols x frames x BitsAllocated/8 bytes: fewer is a truncated
+    or mis-described file, refused on opening (it opened, and each frame failed at its decode)."""
+    import pydicom
+
+    path = _dicom(tmp_path / "cut.dcm", np.stack([_texture((6, 8))] * frames) if frames > 1 else _texture((6, 8)))
+    ds = pydicom.dcmread(path)
+    ds.PixelData = ds.PixelData[: 6 * 8 * 2 * frames - 10]
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=rf"cut\.dcm: .*{6 * 8 * 2 * frames - 10} bytes of pixel data") as info:
+        open_frames(path)
+    assert "\n" not in str(info.value)
+
+
+def test_a_tiny_dicom_declaring_a_gigabyte_of_frames_is_refused_at_open(tmp_path):
+    """32 frames of 4096 x 4096 x 16 bits (1 GiB) declared by a file of under a kilobyte: within a
+    2 GiB budget, but refused from the PixelData's length before anything is allocated."""
+    import pydicom
+
+    path = _dicom(tmp_path / "gig.dcm", _texture((4, 4)))
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 4096, 4096, 32
+    ds.save_as(path)
+    assert path.stat().st_size < 1024
+    with pytest.raises(FormatError, match=r"gig\.dcm: .*32 bytes of pixel data"):
+        read(path, budget="2GiB")
+
+
+def test_a_big_endian_dicom_reads_exactly(tmp_path):
+    """Explicit VR Big Endian (retired, still in old archives): every 16-bit value as written."""
+    import pydicom
+    from pydicom.uid import ExplicitVRBigEndian
+
+    image = _texture()
+    image[0, :3] = [1, 0x0102, 65535]  # byte-swapped, 0x0102 would read 0x0201
+    path = _dicom(tmp_path / "be.dcm", image)
+    ds = pydicom.dcmread(path)
+    ds.file_meta.TransferSyntaxUID = ExplicitVRBigEndian
+    ds.PixelData = image.astype(">u2").tobytes()
+    pydicom.dcmwrite(path, ds, little_endian=False, implicit_vr=False, enforce_file_format=True)
+    assert pydicom.dcmread(path).file_meta.TransferSyntaxUID == ExplicitVRBigEndian
+    got = read(path)
+    assert got.meta["transfer_syntax"].startswith("Explicit VR Big Endian")
+    np.testing.assert_array_equal(got.data[0], image)
+
+
+def _chunk(kind, data):
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _png16_by_hand(image, *, interlace=0, before=b"", after=b"", idat_bytes=None):
+    """A 16-bit greyscale PNG written chunk by chunk (filter 0 on every row), Adam7 where asked:
+    OpenCV writes neither interlaced nor extra chunks."""
+    h, w = image.shape
+    be = image.astype(">u2")
+    passes = [(0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1)]
+    subs = [be[y::dy, x::dx] for y, x, dy, dx in passes] if interlace else [be]
+    raw = b"".join(b"\0" + row.tobytes() for sub in subs if sub.size for row in sub)
+    idat = zlib.compress(raw)[:idat_bytes]
+    ihdr = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, interlace)
+    head = b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + before
+    return head + _chunk(b"IDAT", idat) + after + _chunk(b"IEND", b"")
+
+
+def test_an_adam7_16_bit_png_with_a_gamma_reads_its_stored_values(tmp_path):
+    """Interlaced samples land where they belong, and gAMA/cHRM are a display's business: the
+    values are the stored ones, not gamma-corrected."""
+    image = _texture((37, 29))
+    image[0, :3] = [1, 0x0102, 65535]
+    gamma = _chunk(b"gAMA", struct.pack(">I", 45455)) + _chunk(b"cHRM", bytes(32))
+    path = tmp_path / "adam7.png"
+    path.write_bytes(_png16_by_hand(image, interlace=1, before=gamma))
+    np.testing.assert_array_equal(read(path).data[0], image)
+
+
+def test_text_and_icc_chunks_are_never_decoded_nor_libpng_heard(tmp_path, capfd):
+    """A zTXt, iTXt and iCCP each inflating to 100 MB (a decompression bomb in a text chunk), and
+    a profile libpng finds wrong: the pixels read exactly, and libpng's own "libpng warning: ..."
+    lines (a second voice on the user's terminal) are not printed."""
+    image = _texture((20, 30))
+    bomb = zlib.compress(bytes(100_000_000), 9)
+    extra = (
+        _chunk(b"zTXt", b"Comment\0\0" + bomb)
+        + _chunk(b"iTXt", b"Comment\0\1\0\0\0" + bomb)
+        + _chunk(b"iCCP", b"prof\0\0" + bomb)
+    )
+    path = tmp_path / "chunks.png"
+    path.write_bytes(_png16_by_hand(image, before=extra))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    assert "libpng" not in capfd.readouterr().err
+
+
+def test_a_png_whose_pixel_stream_is_cut_is_one_line(tmp_path, capfd):
+    """IDAT's zlib stream cut short inside a chunk whose CRC is right (a writer killed, then the
+    file closed properly): refused in one line naming the file, and libpng's "Not enough image
+    data" not printed."""
+    path = tmp_path / "short.png"
+    path.write_bytes(_png16_by_hand(_texture((40, 50)), idat_bytes=300))
+    with pytest.raises(FormatError, match=r"short\.png: a PNG whose pixel data .*ends early") as info:
+        read(path)
+    assert "\n" not in str(info.value) and "libpng" not in capfd.readouterr().err
+
+
+def test_an_animated_png_is_refused_not_read_as_its_first_frame(tmp_path):
+    """An APNG's acTL declares its frames; OpenCV reads the default image alone, silently."""
+    image = _texture((10, 12))
+    actl = _chunk(b"acTL", struct.pack(">II", 2, 0))
+    fctl = _chunk(b"fcTL", struct.pack(">IIIIIHHBB", 0, 12, 10, 0, 0, 1, 1, 0, 0))
+    raw = b"".join(b"\0" + row.tobytes() for row in image[::-1].astype(">u2"))
+    later = _chunk(b"fcTL", struct.pack(">IIIIIHHBB", 1, 12, 10, 0, 0, 1, 1, 0, 0))
+    later += _chunk(b"fdAT", struct.pack(">I", 2) + zlib.compress(raw))
+    path = tmp_path / "anim.png"
+    path.write_bytes(_png16_by_hand(image, before=actl + fctl, after=later))
+    with pytest.raises(FormatError, match=r"anim\.png: an animated PNG \(APNG\) of 2 frames"):
+        read(path)
+
+
+def test_a_dicom_without_its_preamble_reads_as_pydicom_reads_it(tmp_path):
+    """The 128-byte preamble and b'DICM' are missing from files many older tools wrote, and
+    pydicom reads them (force=True): so does radiokit, a .dcm whose first bytes are a DICOM
+    element's tag; its file meta's syntax where it has one, else the encoding pydicom finds."""
+    import io
+
+    import pydicom
+    from pydicom.dataset import Dataset
+
+    image = _texture() >> 4  # 12-bit counts
+    full = _dicom(tmp_path / "full.dcm", image, bits_stored=12).read_bytes()
+    meta_only = tmp_path / "nopreamble.dcm"
+    meta_only.write_bytes(full[132:])  # the file meta group first, then the dataset
+    got = read(meta_only)
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["bit_depth"] == 12
+    ds = Dataset()  # a bare dataset, implicit VR little endian, as ACR-NEMA-era tools wrote
+    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *image.shape, 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+    ds.PixelData = image.astype("<u2").tobytes()
+    buf = io.BytesIO()
+    pydicom.dcmwrite(buf, ds, implicit_vr=True, little_endian=True)
+    bare = tmp_path / "bare.dcm"
+    bare.write_bytes(buf.getvalue())
+    got = read(bare)
+    np.testing.assert_array_equal(got.data[0], image)
+    assert (
+        got.meta["transfer_syntax"].startswith("Implicit VR Little Endian")
+        and "no file meta" in got.meta["transfer_syntax"]
+    )
+
+
+@pytest.mark.parametrize("value", ["0", "", "-2", "2.5"])
+def test_a_dicom_number_of_frames_not_a_count(tmp_path, value):
+    """NumberOfFrames 0 or empty (invalid; pydicom assumes 1) reads the one frame the pixel data
+    holds, without pydicom's warning, which named no file, once per decode; a negative or
+    fractional one is refused in one line (-2 was numpy's "negative dimensions are not allowed")."""
+    import pydicom
+
+    image = _texture((4, 5))
+    path = _dicom(tmp_path / "nf.dcm", image)
+    ds = pydicom.dcmread(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own say on an IS of 2.5 as it writes
+        ds.NumberOfFrames = value
+        ds.save_as(path)
+    if value in ("0", ""):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            np.testing.assert_array_equal(read(path).data, image[None])
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pydicom's say on reading an IS of 2.5: the refusal is ours
+            with pytest.raises(FormatError, match=rf"nf\.dcm: .*NumberOfFrames {value}"):
+                read(path)
+
+
+def test_calibrate_from_monochrome1_darks_and_flats_names_the_inversion(tmp_path):
+    """MONOCHROME1 darks and flats (stored 4095 - counts) read as stored put the darks above the
+    flats: the refusal blamed light on the panel; it now says which files are MONOCHROME1 and
+    what to do, in its one line."""
+    rng = np.random.default_rng(5)
+    dark = np.round(100 + rng.normal(0, 3, (3, 16, 20))).astype(np.uint16)
+    flat = np.round(3000 + rng.normal(0, 30, (3, 16, 20))).astype(np.uint16)
+    d = _dicom(tmp_path / "d1.dcm", 4095 - dark, bits_stored=12, photometric="MONOCHROME1")
+    f = _dicom(tmp_path / "f1.dcm", 4095 - flat, bits_stored=12, photometric="MONOCHROME1")
+    res = run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 2, res.stderr
+    refusal = [line for line in res.stderr.splitlines() if "InvertedWarning" not in line]
+    assert len(refusal) == 1 and re.search(r"d1\.dcm, \S*f1\.dcm are MONOCHROME1, read as stored", refusal[0])
+
+
+def test_a_tiny_rle_dicom_declaring_a_gigabyte_is_refused_at_open(tmp_path):
+    """RLE (PackBits) encodes at most 128 bytes in 2: a file under 1/64 of the bytes it declares
+    cannot hold them, and is refused on opening, within the budget, before the stack is allocated."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    path = _dicom(tmp_path / "rle.dcm", np.stack([_texture((4, 4))] * 2), syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = 4096, 4096, 32
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"rle\.dcm: .*RLE") as info:
+        read(path, budget="2GiB")
+    assert "\n" not in str(info.value)
+
+
+def test_an_rle_frame_that_does_not_decode_is_one_line(tmp_path):
+    """pydicom's decode failure is several lines (one per plugin tried): said in one."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    path = _dicom(tmp_path / "rle.dcm", np.stack([_texture((4, 4))] * 2), syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    ds.Rows, ds.Columns = 16, 16  # 1 KiB declared: within what RLE may encode in this file
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"rle\.dcm: frame 0 cannot be decoded") as info:
+        read(path)
+    assert "\n" not in str(info.value)

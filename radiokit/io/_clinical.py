@@ -25,6 +25,19 @@ class InvertedWarning(UserWarning):
 
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def dicom_bare_start(head: bytes) -> bool:
+    """Whether ``head`` may open a DICOM file written without its 128-byte preamble and b'DICM':
+    a little-endian tag's group first, even (a standard group, not a private one) and from the
+    file meta's (0002) to the pixels' (7FE0); a bare dataset starts at its lowest group present
+    (0008, or 0028 where it has only the image's)."""
+    if len(head) < 8:
+        return False
+    group = int.from_bytes(head[:2], "little")
+    return group % 2 == 0 and 0x0002 <= group <= 0x7FE0
+
+
 _PNG_COLOURS = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale with alpha", 6: "RGBA"}
 
 
@@ -54,6 +67,8 @@ def png_header(path) -> dict:
                 out["trns"] = True
             elif kind == b"sBIT" and colour == 0 and length == 1:
                 out["sbit"] = fh.read(1)[0]
+            elif kind == b"acTL" and length == 8:  # APNG's animation control: its frame count first
+                out["frames"] = struct.unpack(">I", fh.read(4))[0]
             pos += 12 + length
     return out
 
@@ -71,6 +86,12 @@ def check_png(path, header: dict, budget) -> None:
     w, h, depth, colour = (header[k] for k in ("width", "height", "depth", "colour"))
     kind = _PNG_COLOURS[colour]
     check_budget(path, png_decoded_bytes(header), f"its PNG header's {w}x{h} {depth}-bit {kind} image", budget)
+    if header.get("frames", 1) > 1:  # OpenCV decodes the default image alone and says nothing of the rest
+        raise FormatError(
+            path,
+            f"an animated PNG (APNG) of {header['frames']} frames, of which OpenCV reads one: "
+            "save the frames as a TIFF stack, or one PNG each",
+        )
     if colour == 3:
         raise FormatError(
             path,
@@ -79,11 +100,58 @@ def check_png(path, header: dict, budget) -> None:
         )
 
 
-def check_png_chunks(path, buf) -> None:
-    """Every chunk inside the file, its CRC right, and IEND reached. Why: on a truncated or
-    corrupt PNG libpng prints its own "libpng error: ..." line to the process's stderr before
-    OpenCV returns nothing, and the user saw two lines, one not radiokit's."""
-    pos, size = 8, len(buf)
+#: the chunks that make a PNG's pixels; the rest (text, ICC profiles, gamma, APNG's frames) are
+#: dropped before OpenCV sees the file (:func:`decode_png`)
+_PIXEL_CHUNKS = (b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND")
+#: Adam7's passes: (first row, first column, row step, column step)
+_ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
+_PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def png_pixel_bytes(header: dict, interlaced: bool) -> int:
+    """The bytes IDAT's zlib stream inflates to: each row (of each Adam7 pass) a filter byte
+    and its samples, packed to whole bytes."""
+    w, h = header["width"], header["height"]
+    bits = _PNG_SAMPLES[header["colour"]] * header["depth"]
+    passes = _ADAM7 if interlaced else ((0, 0, 1, 1),)
+    total = 0
+    for y, x, dy, dx in passes:
+        rows, cols = -(-(h - y) // dy), -(-(w - x) // dx)
+        if rows > 0 and cols > 0:
+            total += rows * (1 + -(-cols * bits // 8))
+    return total
+
+
+def _check_idat_stream(path, header: dict, interlaced: bool, idat) -> None:
+    """Refuse pixel data whose zlib stream ends (or breaks) before the image does. Why: a cut
+    stream inside a chunk whose CRC is right passed :func:`check_png_chunks`, and libpng printed
+    "libpng error: Not enough image data" before the one line. Inflated a block at a time,
+    counted and dropped: no more memory than a block."""
+    need, got = png_pixel_bytes(header, interlaced), 0
+    inflate = zlib.decompressobj()
+    try:
+        for piece in idat:
+            data = inflate.decompress(piece, 1 << 22)
+            got += len(data)
+            while inflate.unconsumed_tail and got < need:
+                data = inflate.decompress(inflate.unconsumed_tail, 1 << 22)
+                got += len(data)
+            if got >= need:
+                break
+    except zlib.error as exc:
+        raise FormatError(path, f"a PNG whose pixel data does not inflate ({exc}): corrupt") from None
+    if got < need:
+        raise FormatError(
+            path, f"a PNG whose pixel data ends early: {got} of its image's {need} bytes (truncated or corrupt)"
+        )
+
+
+def check_png_chunks(path, buf) -> list:
+    """Every chunk inside the file, its CRC right, and IEND reached; the chunks' (kind, start,
+    end) spans returned. Why: on a truncated or corrupt PNG libpng prints its own "libpng
+    error: ..." line to the process's stderr before OpenCV returns nothing, and the user saw two
+    lines, one not radiokit's."""
+    pos, size, spans = 8, len(buf), []
     while pos + 12 <= size:
         length, kind = struct.unpack_from(">I4s", buf, pos)
         if pos + 12 + length > size:
@@ -92,8 +160,9 @@ def check_png_chunks(path, buf) -> None:
         if zlib.crc32(buf[pos + 4 : pos + 8 + length]) != crc:
             name = kind.decode("latin-1", "replace")
             raise FormatError(path, f"a PNG whose {name!r} chunk at byte {pos} fails its CRC: corrupt")
+        spans.append((bytes(kind), pos, pos + 12 + length))
         if kind == b"IEND":
-            return
+            return spans
         pos += 12 + length
     raise FormatError(path, f"a PNG truncated: its chunks end at byte {pos} of {size} without IEND")
 
@@ -108,7 +177,16 @@ def decode_png(path, header: dict) -> np.ndarray:
 
     # imdecode of the bytes, not imread: imread fails silently (None) on a non-ASCII path on Windows
     raw = np.fromfile(path, np.uint8)
-    check_png_chunks(path, memoryview(raw))
+    view = memoryview(raw)
+    spans = check_png_chunks(path, view)
+    interlaced = bool(raw[28])  # IHDR's last byte (png_header read its others)
+    _check_idat_stream(path, header, interlaced, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
+    # the pixels' chunks alone: libpng inflates text and ICC chunks (a 100 KB zTXt may hold 100 MB)
+    # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
+    # incorrect sRGB profile"); gamma is a display's business, never applied to the values
+    kept = [view[a:b] for k, a, b in spans if k in _PIXEL_CHUNKS]
+    if len(kept) < len(spans):
+        raw = np.frombuffer(b"".join([bytes(view[:8]), *kept]), np.uint8)
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
@@ -180,21 +258,67 @@ def _decodable_syntax(path, ds):
     return syntax
 
 
+def _syntax_found(ds) -> bool:
+    """Give a dataset read without its file meta the transfer syntax pydicom found its elements
+    in (its decoders need one), and say whether it had to."""
+    from pydicom import uid
+    from pydicom.dataset import FileMetaDataset
+
+    if "TransferSyntaxUID" in getattr(ds, "file_meta", {}) or "PixelData" not in ds:
+        return False
+    implicit, little = ds.original_encoding
+    ds.file_meta = getattr(ds, "file_meta", None) or FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = (
+        uid.ImplicitVRLittleEndian if implicit else uid.ExplicitVRLittleEndian if little else uid.ExplicitVRBigEndian
+    )
+    return True
+
+
+def _frame_count(path, ds) -> int:
+    """NumberOfFrames as a count: absent, empty or 0 (invalid; pydicom assumes 1) is one frame,
+    and the dataset is told so (pydicom warned at each decode, naming no file; the pixel data's
+    length is checked against it next); a negative or fractional value is refused in one line
+    (-2 reached numpy as "negative dimensions are not allowed")."""
+    value = ds.get("NumberOfFrames")
+    try:
+        number = _number(value, 0)
+    except (TypeError, ValueError):
+        number = None
+    if number == 0:
+        if "NumberOfFrames" in ds:
+            ds.NumberOfFrames = 1
+        return 1
+    if not isinstance(number, int) or number < 0:
+        raise FormatError(path, f"a DICOM file whose NumberOfFrames {value} is not a count of frames")
+    return number
+
+
+def _read_dataset(path):
+    """The dataset, its pixels deferred, and whether its transfer syntax had to be found (no
+    file meta). Without the preamble and b'DICM' (older tools, ACR-NEMA-era datasets) pydicom
+    reads a file where told to (force=True), as a user would expect radiokit to; sniff let such a
+    .dcm through only where its first bytes are a DICOM element's group."""
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    with open(path, "rb") as fh:
+        bare = fh.read(132)[128:132] != b"DICM"
+    try:
+        # values over 1 KB (the pixels) are read when asked for, not now
+        ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
+    except (InvalidDicomError, EOFError, OSError, ValueError, struct.error) as exc:
+        raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    return ds, bare and _syntax_found(ds)
+
+
 def open_dicom(path, budget) -> tuple[object, dict, dict]:
     """The dataset (pixel data deferred, not read), the frames' geometry and ``meta``; refused in
     one line where its pixels are absent, of a kind a radiograph is not (colour, float), in a
     transfer syntax pydicom cannot decode alone, or past the budget."""
-    import pydicom
-    from pydicom.errors import InvalidDicomError
-
-    try:
-        # values over 1 KB (the pixels) are read when asked for, not now
-        ds = pydicom.dcmread(path, defer_size="1 KB")
-    except InvalidDicomError as exc:
-        raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    ds, found = _read_dataset(path)
     syntax = _decodable_syntax(path, ds)
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
-    n = int(_number(ds.get("NumberOfFrames"), 1) or 1)
+    n = _frame_count(path, ds)
     samples = int(ds.get("SamplesPerPixel", 1) or 1)
     allocated = int(ds.get("BitsAllocated", 0) or 0)
     stored = int(ds.get("BitsStored", allocated) or allocated)
@@ -219,13 +343,16 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
+    _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
     slope, intercept = _number(ds.get("RescaleSlope"), 1), _number(ds.get("RescaleIntercept"), 0)
+    _check_rescale(path, dtype, slope, intercept)
     meta = {
         "n": n,
         "rows": rows,
         "cols": cols,
         "dtype": str(dtype),
-        "transfer_syntax": f"{syntax.name} ({syntax})",
+        "transfer_syntax": f"{syntax.name} ({syntax}"
+        + ("; no file meta: the encoding pydicom found)" if found else ")"),
         "photometric": photometric,
         "modality": str(ds.get("Modality", "")),
     }
@@ -246,6 +373,59 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     meta.update(_dicom_pitch(path, ds))
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
     return ds, geometry, meta
+
+
+def _check_pixel_length(path, ds, syntax, declared: int) -> None:
+    """Refuse uncompressed pixel data shorter than its header declares. Why: such a file opened and
+    each frame then failed at its decode, and a file of a few hundred bytes declaring a gigabyte of
+    frames had its stack allocated first. The element's length is read, not its value (deferred);
+    an encapsulated (RLE) element's length is undefined: the file's size bounds what it may
+    declare, and its frames are judged as decoded."""
+    from pydicom.uid import RLELossless
+
+    if syntax == RLELossless:
+        # PackBits encodes at most 128 bytes in 2: a file under 1/64 of what it declares cannot
+        # hold it (its fragments' lengths would need the pixels read to sum)
+        if declared > 64 * os.path.getsize(path):
+            raise FormatError(
+                path,
+                f"a DICOM file of {os.path.getsize(path)} bytes declaring {declared} bytes of RLE Lossless "
+                "pixels, more than RLE can encode in it (64:1 at most): truncated, or its header is wrong",
+            )
+        return
+    item = ds.get_item("PixelData")
+    length = getattr(item, "length", None)
+    if length is None:  # a DataElement already read (a small file): its bytes are at hand
+        length = len(item.value or b"")
+    if length == 0xFFFFFFFF or length >= declared:
+        return
+    raise FormatError(
+        path,
+        f"a DICOM file with {length} bytes of pixel data where its header declares {declared} "
+        "(Rows x Columns x NumberOfFrames x BitsAllocated): truncated, or its header is wrong",
+    )
+
+
+def _check_rescale(path, dtype, slope, intercept) -> None:
+    """Refuse a Modality LUT that is no slope of these values, as a CF packing's is: a slope of 0
+    (every pixel the intercept), NaN or inf (frames of NaN), or one that takes the stored type's
+    range past float64's (frames of inf, and numpy's overflow warnings naming no file)."""
+    import math
+
+    if not (math.isfinite(slope) and math.isfinite(intercept)):
+        raise FormatError(
+            path, f"a DICOM file whose RescaleSlope {slope} or RescaleIntercept {intercept} is not a finite number"
+        )
+    if slope == 0:
+        raise FormatError(path, f"a DICOM file whose RescaleSlope is 0: every pixel would read as {intercept:g}")
+    info = np.iinfo(dtype)
+    ends = [float(info.min) * slope + intercept, float(info.max) * slope + intercept]
+    if not all(math.isfinite(e) for e in ends):
+        raise FormatError(
+            path,
+            f"a DICOM file whose RescaleSlope {slope:g} and RescaleIntercept {intercept:g} take its {dtype} values "
+            "past float64's range: not a Modality LUT of these values",
+        )
 
 
 def _say_inverted(path) -> None:

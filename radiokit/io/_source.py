@@ -22,6 +22,7 @@ from radiokit.io._clinical import (
     PNG_MAGIC,
     check_png,
     decode_png,
+    dicom_bare_start,
     dicom_frame,
     open_dicom,
     png_header,
@@ -103,9 +104,8 @@ _NO_SIGNATURE = {
     "itex": "wrong magic {head!r}: an ITEX .img starts with b'IM'",
     "hdf5": "no HDF5 signature: not an HDF5 file, or truncated",
     "png": "no PNG signature (b'\\x89PNG\\r\\n\\x1a\\n'): not a PNG file, or truncated",
-    # a DICOM without its 128-byte preamble and b'DICM' (ACR-NEMA, or a bare dataset) is not read
-    "dicom": "no DICOM signature (b'DICM' at byte 128): not a DICOM file, or one without its preamble; "
-    "write it again as a DICOM file (pydicom: save_as(..., enforce_file_format=True))",
+    # (one without its preamble is read where a file meta or dataset element comes first: sniff)
+    "dicom": "no DICOM signature (b'DICM' at byte 128), nor a DICOM element at byte 0: not a DICOM file, or truncated",
 }
 _RAW_HINTS = {"preset", "shape", "dtype", "byteorder", "offset", "n", "panel_shape"}
 #: hints that files carrying their own geometry take (n) or let pass (panel_shape: correct compares
@@ -206,6 +206,8 @@ def sniff(path) -> str:
     ext = _EXTENSIONS.get(path.suffix.lower())
     if ext != "raw" and (head == PNG_MAGIC or start[128:132] == b"DICM"):
         return "png" if head == PNG_MAGIC else "dicom"
+    if ext == "dicom" and dicom_bare_start(start):
+        return "dicom"  # no preamble: a file meta or dataset element first, as pydicom's force=True reads it
     if head[:2] == b"IM" and ext in (None, "itex"):
         return "itex"
     if not head:
@@ -1950,7 +1952,8 @@ class FrameSource:
         except FormatError:
             raise
         except Exception as exc:  # as in __init__: whatever a decoder raises on a corrupt file
-            raise FormatError(self.path, f"frame {i} cannot be decoded: {exc}") from exc
+            # (in one line: pydicom's says what each of its decoders raised, a line each)
+            raise FormatError(self.path, f"frame {i} cannot be decoded: {' '.join(str(exc).split())}") from exc
         self._check_bits(frame)
         return frame
 
@@ -2036,7 +2039,8 @@ class FrameSource:
             try:
                 ds.read_direct(out, np.s_[a:b], np.s_[a:b])
             except Exception as exc:  # as __getitem__: whatever a filter raises on a corrupt chunk
-                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {exc}") from exc
+                said = " ".join(str(exc).split())
+                raise FormatError(self.path, f"frames {a}..{b - 1} cannot be decoded: {said}") from exc
         for i in range(self.n):
             stored = out[i]
             frame = self._hdf5_frame(stored)
