@@ -557,6 +557,7 @@ class FolderWatcher:
 
     def _load(self, path: Path) -> np.ndarray:
         """The file's frames ``(n, rows, cols)``; :class:`_NotYet` if it does not read (yet)."""
+        fmt = None  # the sniff itself may fail: the file renamed away since it was listed
         try:
             fmt = sniff(path)
             if fmt == "hdf5":

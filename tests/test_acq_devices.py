@@ -817,3 +817,14 @@ def test_a_panel_check_frame_leaves_the_series_frames_as_they_were(bench):
     b = np.stack([f.data for f in checked.acquire(2)])
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(frame.data, a[0])  # its own noise, not the series' first frame
+
+
+def test_folder_a_frame_gone_before_it_is_sniffed_is_not_yet_read(tmp_path):
+    """Found on a loaded machine (session 53): a temporary name renamed between the listing and
+    the sniff of its format (the file gone: FormatError "no such file") ended the acquisition in
+    an UnboundLocalError, the format's name unbound in the handler; it is a frame not yet read."""
+    from acquisition.detector import _NotYet
+
+    watcher = FolderWatcher(tmp_path, "*.tif", shape=SHAPE, timeout_s=5, **FAST)
+    with pytest.raises(_NotYet, match="no such file"):
+        watcher._load(tmp_path / "~temp.tif")
