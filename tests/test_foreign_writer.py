@@ -173,3 +173,26 @@ def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys
         del h5["entry/sample/compression/ratio"]
         h5["entry/sample/compression/ratio"] = [0.15, 0.2, 0.25]
     _refused(path, capsys, "3 values for 12", "one per frame")
+
+
+@pytest.mark.parametrize("command", ["process", "calibrate", "correct"])
+def test_an_experiment_file_of_0_frames_is_named_as_such(command, tmp_path, capsys):
+    """A stack of 0 frames is ``FILE: no frames`` (README, as `radiokit info` says it); an experiment
+    file of none was "holds no darks (image_key 2)" to process and calibrate, and "not an experiment
+    file" to correct."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path, storage=dict(maxshape=(None, N, N), chunks=CHUNK))
+    with h5py.File(path, "a") as h5:
+        h5["entry/instrument/detector/data"].resize(0, axis=0)
+        for name in ("instrument/detector/image_key", "sample/compression/step", "sample/compression/ratio"):
+            dtype = h5["entry"][name].dtype
+            del h5["entry"][name]
+            h5["entry"].create_dataset(name, shape=(0,), dtype=dtype)
+        del h5["entry/sample/compression/gap"]
+    before = path.read_bytes()
+    out = tmp_path / ("out" if command == "process" else "out.h5")
+    args = {"process": [str(path), "-o", str(out)], "calibrate": ["--experiment", str(path), "-o", str(out)]}
+    assert main([command, *args.get(command, [str(path), "-o", str(out)]), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"radiokit {command}: {path}: no frames"
+    assert not out.exists() and path.read_bytes() == before
