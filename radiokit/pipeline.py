@@ -406,10 +406,12 @@ def _too_few_steps(numbers: list, unnumbered: int) -> str:
 
 def _check_step_records(path, keys, steps, ratios, numbers) -> None:
     """Refuse, naming the first frame, what DESIGN.md's layout lets another program write but no
-    series means: a projection with a negative step (-1 is the darks' and flats'), which was left
+    series means, a projection with a negative step (-1 is the darks' and flats'), which was left
     out without a word (a whole step of a foreign file dropped, the run measured on the other two
-    with exit code 0), and a step whose frames record different ratios (a step is one compression:
-    0.2 and 0.22 were averaged into one image at 0.21). Frames with no ratio (NaN) are not compared."""
+    with exit code 0); and warn of a step whose frames record different ratios (0.2 and 0.22 were
+    averaged into one image at 0.21 without a word): not refused, since radiokit's own series can
+    write one (a step resumed on a manual frame records the gap the operator measured again).
+    Frames with no ratio (NaN) are not compared."""
     from radiokit.io import ImageKey
 
     projection = keys == ImageKey.PROJECTION
@@ -426,13 +428,16 @@ def _check_step_records(path, keys, steps, ratios, numbers) -> None:
     for s in numbers:
         idx = np.flatnonzero(projection & (steps == s) & np.isfinite(ratios))
         if idx.size and np.ptp(ratios[idx]) > 1e-6:  # float32 storage of one value differs by < 1e-7
-            first = int(idx[0])
-            other = int(idx[np.flatnonzero(np.abs(ratios[idx] - ratios[first]) > 1e-6)[0]])
-            raise FormatError(
-                path,
-                f"step {s} records two compression ratios, {ratios[first]:.6g} (frame {first}) and "
-                f"{ratios[other]:.6g} (frame {other}): a step is one compression, its frames averaged into one "
-                "image; give each step one ratio",
+            import warnings
+
+            lo, hi = int(idx[np.argmin(ratios[idx])]), int(idx[np.argmax(ratios[idx])])
+            warnings.warn(
+                f"{shown(path)}: step {s}'s frames record compression ratios from {ratios[lo]:.6g} (frame {lo}) "
+                f"to {ratios[hi]:.6g} (frame {hi}): averaged as one image at their mean, "
+                f"{float(np.mean(ratios[idx])):.6g}; frames of another compression (a mislabelled step) should "
+                "carry their own step, or image_key 3 (invalid)",
+                UserWarning,
+                stacklevel=4,
             )
 
 

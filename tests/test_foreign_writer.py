@@ -157,11 +157,14 @@ def test_a_projection_without_a_step_beside_numbered_steps_is_refused_not_droppe
     _refused(path, capsys, "frame 8", "projection", "step -1", "image_key 3")
 
 
-def test_a_step_whose_frames_record_two_ratios_is_refused(tmp_path, capsys):
+def test_a_step_whose_frames_record_two_ratios_is_said_and_averaged(tmp_path):
     """A step is one compression (DESIGN.md: a ratio per step): frames of one step recording 0.2 and
-    0.22 are a mislabelled step or a mistyped ratio, and were averaged into one image at 0.21."""
+    0.22 (a mislabelled step, a mistyped ratio) were averaged into one image at 0.21 without a word.
+    Warned, not refused: a step resumed on a manual frame records the operator's second reading."""
     path = _edited(tmp_path, lambda step, ratio: ratio.__setitem__(np.flatnonzero(step == 2)[1], 0.22))
-    _refused(path, capsys, "step 2", "0.2", "0.22", "frame 9")
+    with pytest.warns(UserWarning, match=r"step 2's frames .* from 0\.2 \(frame 8\) to 0\.22 \(frame 9\).* 0\.21;"):
+        steps = load_steps(path)
+    assert steps.ratios[1] == pytest.approx(0.21, abs=1e-12)
 
 
 def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys):
