@@ -842,6 +842,8 @@ class Calibration:
                 raise FormatError(
                     path, "is a radiokit calibration, not an experiment file: use it as it is (radiokit correct --cal)"
                 )
+            if not len(src):  # as `radiokit info` says it, not "holds no darks"
+                raise FormatError(path, "no frames")
             keys = np.asarray(src.meta.get("image_key", []))
             times = np.asarray(src.meta.get("time", np.full(len(keys), np.nan)))
             sel = {k: np.flatnonzero(keys == k) for k in (ImageKey.DARK, ImageKey.FLAT)}

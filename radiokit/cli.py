@@ -836,6 +836,8 @@ def _an_experiment(path, hints) -> None:
     from radiokit.io import FormatError, ImageKey, open_frames
 
     with open_frames(path, **hints) as src:
+        if not len(src):  # as `radiokit info` says it, not "not an experiment file"
+            raise FormatError(path, "no frames")
         keys = np.asarray(src.meta.get("image_key", []))
     # an experiment file lacking one kind is told which by the calibration (review s34-r3)
     if not (np.any(keys == ImageKey.DARK) or np.any(keys == ImageKey.FLAT)):

@@ -404,6 +404,43 @@ def _too_few_steps(numbers: list, unnumbered: int) -> str:
     return f"needs projections of at least two compression steps; {found}"
 
 
+def _check_step_records(path, keys, steps, ratios, numbers) -> None:
+    """Refuse, naming the first frame, what DESIGN.md's layout lets another program write but no
+    series means, a projection with a negative step (-1 is the darks' and flats'), which was left
+    out without a word (a whole step of a foreign file dropped, the run measured on the other two
+    with exit code 0); and warn of a step whose frames record different ratios (0.2 and 0.22 were
+    averaged into one image at 0.21 without a word): not refused, since radiokit's own series can
+    write one (a step resumed on a manual frame records the gap the operator measured again).
+    Frames with no ratio (NaN) are not compared."""
+    from radiokit.io import ImageKey
+
+    projection = keys == ImageKey.PROJECTION
+    loose = np.flatnonzero(projection & (steps < 0))
+    if loose.size:
+        i = int(loose[0])
+        more = f" (and {loose.size - 1} more)" if loose.size > 1 else ""
+        raise FormatError(
+            path,
+            f"frame {i}{more} is a projection (image_key 0) with step {int(steps[i])}, in no compression step "
+            f"beside steps {', '.join(map(str, numbers))} (a negative step is a dark's or a flat's): give it its "
+            "step, or mark it invalid (image_key 3)",
+        )
+    for s in numbers:
+        idx = np.flatnonzero(projection & (steps == s) & np.isfinite(ratios))
+        if idx.size and np.ptp(ratios[idx]) > 1e-6:  # float32 storage of one value differs by < 1e-7
+            import warnings
+
+            lo, hi = int(idx[np.argmin(ratios[idx])]), int(idx[np.argmax(ratios[idx])])
+            warnings.warn(
+                f"{shown(path)}: step {s}'s frames record compression ratios from {ratios[lo]:.6g} (frame {lo}) "
+                f"to {ratios[hi]:.6g} (frame {hi}): averaged as one image at their mean, "
+                f"{float(np.mean(ratios[idx])):.6g}; frames of another compression (a mislabelled step) should "
+                "carry their own step, or image_key 3 (invalid)",
+                UserWarning,
+                stacklevel=4,
+            )
+
+
 def _load_steps(path, progress: bool) -> Steps:
     """:func:`load_steps` without its NaN warning: :func:`process` refuses such pixels inside a
     ROI (:func:`_check_unknown_in_rois`) and warns of them only once they pass."""
@@ -424,6 +461,7 @@ def _load_steps(path, progress: bool) -> Steps:
         numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
         if len(numbers) < 2:
             raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
+        _check_step_records(path, keys, steps, ratios_all, numbers)
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
         numbers = _compression_order(numbers, keys, steps, ratios_all, gaps, path)
         images, ratios = [], []

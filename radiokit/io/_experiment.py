@@ -2247,7 +2247,13 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
         if name in h5.get(group, {}):
             values = checked_dataset(path, h5, f"{group}/{name}", "iuf", (1,), allow_external)[:n]
             if len(values) != n:
-                raise FormatError(path, f"/{group}/{name} holds {len(values)} values for {n} complete frames")
+                # DESIGN.md's "ratio per step" reads as one a step to another program's author
+                blank = {"step": " (-1 for darks and flats)", "image_key": ""}.get(name, " (NaN where not recorded)")
+                raise FormatError(
+                    path,
+                    f"/{group}/{name} holds {len(values)} values for {n} complete frames; expected one per frame, "
+                    f"in the frames' order{blank}",
+                )
             if name in ("image_key", "step"):
                 values = _whole_numbers(path, values, f"/{group}/{name}", name)
             elif name == "ratio":
