@@ -320,6 +320,21 @@ def test_a_dicom_rescale_of_zero_not_finite_or_past_the_type_is_refused(tmp_path
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("tag, stored", [("RescaleSlope", b"7.25"), ("RescaleIntercept", b"-3.5")])
+def test_a_dicom_rescale_that_is_no_number_is_refused_naming_the_tag(tmp_path, tag, stored):
+    """float()'s own line ("could not convert string to float: 'abcd'") named neither the tag nor
+    what was wrong with the file. pydicom will not write such a DS: the value is put in the bytes."""
+    path = _dicom(tmp_path / "lut.dcm", _texture(), rescale=(7.25, -3.5))
+    raw = path.read_bytes()
+    assert raw.count(stored) == 1
+    path.write_bytes(raw.replace(stored, b"abcd"[: len(stored)]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own say on an invalid DS as it reads
+        with pytest.raises(FormatError, match=rf"lut\.dcm: .*{tag} is not a number") as info:
+            open_frames(path)
+    assert "\n" not in str(info.value)
+
+
 @pytest.mark.parametrize("frames", [1, 3])
 def test_a_dicom_whose_pixel_data_is_shorter_than_declared_is_refused_at_open(tmp_path, frames):
     """Uncompressed pixels hold rows x cols x frames x BitsAllocated/8 bytes: fewer is a truncated

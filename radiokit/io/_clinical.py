@@ -234,6 +234,15 @@ def _number(value, default):
     return int(number) if number.is_integer() else number
 
 
+def _tag_number(path, ds, tag: str, default):
+    """``tag``'s value as :func:`_number` reads it; one that is no number is refused naming the tag
+    (float()'s own line, "could not convert string to float", named neither it nor the file's part)."""
+    try:
+        return _number(ds.get(tag), default)
+    except (TypeError, ValueError) as exc:
+        raise FormatError(path, f"a DICOM file whose {tag} is not a number ({exc})") from None
+
+
 def _decodable_syntax(path, ds):
     """The transfer syntax of ``ds``, refused in one line where there are no pixels to decode or
     pydicom cannot decode them alone (:func:`_decodable_syntaxes`)."""
@@ -344,7 +353,9 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
     _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
-    slope, intercept = _number(ds.get("RescaleSlope"), 1), _number(ds.get("RescaleIntercept"), 0)
+    slope, intercept = (
+        _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
+    )
     _check_rescale(path, dtype, slope, intercept)
     meta = {
         "n": n,
