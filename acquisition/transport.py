@@ -572,6 +572,7 @@ class SerialTransport:
         # longer for a switch-off (_close_wait_over)
         self._owner: int | None = None
         self._running: tuple[str | None, float] | None = None
+        self._closer: int | None = None  # the thread whose close() holds _lock
         # One step of an exchange that touches the port's descriptor (a read slice, a write, a
         # queue poll) holds _io, and a close detaches and closes the port only under it: closed
         # between two steps, the descriptor's number could be taken by an open() elsewhere before
@@ -651,8 +652,8 @@ class SerialTransport:
         port and is raised, as is a link lost during the check (a :class:`DeviceError`, the port
         left closed: pyserial's exception named no port and reached the operator as a traceback)."""
         with self._lock:  # the check is an exchange: not interleaved with another thread's
-            self._taken(None)
             try:
+                self._taken(None)
                 if not self.is_open:
                     try:
                         self._reopen(None, None)
@@ -801,13 +802,15 @@ class SerialTransport:
                 return
             self._close_under_exchange()
             return
-        if not self._wait_for_exchange():
-            self._close_under_exchange()
-            return
         try:
-            self._close_all()
+            if self._wait_for_exchange():
+                self._close_all()
+            else:
+                self._close_under_exchange()
         finally:
-            self._lock.release()
+            if self._closer == me:
+                self._closer = None
+                self._lock.release()
 
     def _close_all(self) -> None:
         """Close the port and let go of the lock's share (the exchange's lock held, or its end)."""
@@ -841,9 +844,13 @@ class SerialTransport:
             left = limit - time.monotonic()
             if left <= 0:
                 return False
-            # in slices: an exchange that starts meanwhile may be a switch-off, waited for longer
-            if self._lock.acquire(timeout=min(left, _READ_SLICE_S)):
-                return True
+            # in slices: an exchange that starts meanwhile may be a switch-off, waited for longer.
+            # Taken and recorded in one step for a stop signal (close() releases what is
+            # recorded): one landing between the two left the link locked for good
+            with held(*_STOPS):
+                if self._lock.acquire(timeout=min(left, _READ_SLICE_S)):
+                    self._closer = threading.get_ident()
+                    return True
 
     def _close_under_exchange(self) -> None:
         """Close the link under an exchange that holds its lock: marked closing, the port detached
@@ -967,8 +974,8 @@ class SerialTransport:
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         payload = self._payload(command)
         with self._lock:
-            self._taken(command)
             try:
+                self._taken(command)
                 return self._query(command, payload)
             finally:
                 self._given_back()
