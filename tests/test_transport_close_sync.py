@@ -231,3 +231,41 @@ def test_a_close_from_a_signal_handler_in_the_exchange_s_own_thread_does_not_dea
     finally:
         signal.signal(signal.SIGUSR1, previous)
         link.close()
+
+
+def test_a_close_from_a_signal_handler_during_its_own_thread_s_switch_off_leaves_it_to_its_end(served):
+    """The handler's close lands in the running switch-off's reconnect check, in the same thread:
+    the switch-off is not cut short (XOF reaches the controller, its reply read); the port is
+    closed as its query ends."""
+    import signal
+
+    model, server = served
+    link = SerialTransport(server.url, **_SHORT, retries=0)
+    check = _StalledCheck()
+    handled = []
+
+    def handler(signum, frame):
+        handled.append(link.is_open)
+        link.close()
+
+    previous = signal.signal(signal.SIGUSR1, handler)
+    try:
+        assert link.query("TYP") == "TYP L8121-01"
+        link._close_port()
+        link.on_reconnect = check
+
+        def fire():
+            if check.entered.wait(2.0):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGUSR1)
+                time.sleep(0.1)
+            check.go.set()
+
+        threading.Thread(target=fire, daemon=True).start()
+        assert link.query("XOF") == "XOF"
+        assert handled == [True]  # the handler ran within the switch-off, the port open
+        assert model.commands[-1] == "XOF" and check.reply == "TYP L8121-01"
+        assert not link.is_open and link._hold is None
+    finally:
+        check.go.set()
+        signal.signal(signal.SIGUSR1, previous)
+        link.close()
