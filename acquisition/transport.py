@@ -96,9 +96,11 @@ def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float
     )
 
 
-#: What a port's (re)open may take within a switch-off's reconnect: pyserial's socket:// connect
-#: time-out (5 s) and its RFC 2217 negotiation's (3 s); a local device opens in microseconds.
+#: What a port's (re)open may take within a switch-off's reconnect: a URL's, pyserial's socket://
+#: connect time-out (5 s) and its RFC 2217 negotiation's (3 s); a local device's (a non-blocking
+#: open, a flock that does not wait, the line settings), a second for a loaded machine.
 _OPEN_WAIT_S = 8.0
+_OPEN_WAIT_LOCAL_S = 1.0
 
 
 #: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
@@ -824,11 +826,13 @@ class SerialTransport:
 
     def _switch_off_wait_s(self) -> float:
         """A switch-off's whole query at its longest by its time-outs: each attempt (the first,
-        and one per reconnect allowed, ``retries``) may reopen the port (:data:`_OPEN_WAIT_S`),
-        check the device (one exchange) and write the switch-off blind (a write and a drain),
-        then exchange (:func:`close_wait_s`); a reconnect first waits out the old port's output."""
+        and one per reconnect allowed, ``retries``) may reopen the port (:data:`_OPEN_WAIT_S`; a
+        local device's :data:`_OPEN_WAIT_LOCAL_S`), check the device (one exchange) and write the
+        switch-off blind (a write and a drain), then exchange (:func:`close_wait_s`); a reconnect
+        first waits out the old port's output."""
         one = close_wait_s(self.timeout_s, self.write_timeout_s, self.min_interval_s)
-        attempt = _OPEN_WAIT_S + one + 2 * self.write_timeout_s + one
+        opening = _OPEN_WAIT_S if "://" in self.url else _OPEN_WAIT_LOCAL_S
+        attempt = opening + one + 2 * self.write_timeout_s + one
         return (self.retries + 1) * attempt + self.retries * self.write_timeout_s
 
     def _wait_for_exchange(self) -> bool:
