@@ -1242,8 +1242,10 @@ class SerialTransport:
                 if not isinstance(fd, int):
                     raise OSError("the port was closed")
                 return int(ser.out_waiting or 0)
-        except _ClosedUnderIt:
-            raise  # closed by close(): a lost link not reconnected, not a port gone by itself
+        except _ClosedUnderIt as exc:
+            if self._closing or ser is not self._serial:
+                raise  # closed by close(): a lost link not reconnected, not a port gone by itself
+            raise _GoneMidDrain(f"the port went while {command} drained: {exc.__cause__ or exc}") from exc
         except (serial.SerialException, OSError, ValueError, TypeError) as exc:
             raise _GoneMidDrain(f"the port went while {command} drained: {exc}") from exc
 
