@@ -74,6 +74,36 @@ def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
     return late_reply_wait_s(timeout_s) + _READ_SLICE_S + 3 * min_interval_s + timeout_s + 2 * _READ_SLICE_S
 
 
+def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float) -> float:
+    """The longest :meth:`SerialTransport.close` waits for another thread's exchange to end: one
+    exchange at its worst by its own time-outs, a wedged port's included (unlike
+    :func:`exchange_longest_s`, a responsive link's): an interrupted exchange's reply awaited up
+    to its time-out (``_drain_pending``) and a read slice; the late reply's wait
+    (:func:`late_reply_wait_s`) and a slice; the spacing, three spacings at most (a byte in its
+    second restarts it, ``_wait_spacing``) and a poll; from the command's start, the reply
+    time-out or its three write waits (an earlier command's bytes, its write, its drain, each up
+    to ``write_timeout_s``), whichever is longer, and two read slices past it (the stall grace,
+    the last read's overrun). A reconnect (the port reopened, the device checked, the command
+    sent again) is past it: a closed link is not reconnected anyway."""
+    return (
+        timeout_s
+        + _READ_SLICE_S
+        + late_reply_wait_s(timeout_s)
+        + _READ_SLICE_S
+        + 3 * min_interval_s
+        + _SPACING_SLICE_S
+        + max(timeout_s, 3 * write_timeout_s)
+        + 2 * _READ_SLICE_S
+    )
+
+
+#: What a port's (re)open may take within a switch-off's reconnect: a URL's, pyserial's socket://
+#: connect time-out (5 s) and its RFC 2217 negotiation's (3 s); a local device's (a non-blocking
+#: open, a flock that does not wait, the line settings), a second for a loaded machine.
+_OPEN_WAIT_S = 8.0
+_OPEN_WAIT_LOCAL_S = 1.0
+
+
 #: the micro sign as a unit may write it: Latin-1/cp1252 (0xB5), UTF-8 (U+00B5, and U+03BC, the
 #: Greek mu Unicode normalisation makes of it)
 _MICRO = (b"\xc2\xb5", b"\xce\xbc", b"\xb5")
@@ -448,8 +478,9 @@ class _GoneMidDrain(serial.SerialException):
 
 
 class _ClosedUnderIt(serial.SerialException):
-    """The port was closed while an exchange read from it (:meth:`SerialTransport.close` from
-    another thread, which does not wait for the exchange's lock): a lost link, like any other."""
+    """The link was closed while an exchange ran (:meth:`SerialTransport.close` from another
+    thread, past its wait for the exchange, or from a signal handler in the exchange's own
+    thread): a lost link, like any other, but never reconnected."""
 
 
 class _DrainTimedOut(serial.SerialTimeoutException):
@@ -539,6 +570,28 @@ class SerialTransport:
         self.log = log
         self._serial: serial.SerialBase | None = None
         self._lock = threading.Lock()
+        # The thread holding _lock (None: free), and what it runs: (command, since) -- close()
+        # waits for another thread's exchange, never for its own thread's (a signal handler), and
+        # longer for a switch-off (_close_wait_over)
+        self._owner: int | None = None
+        self._running: tuple[str | None, float] | None = None
+        self._closer: int | None = None  # the thread whose close() holds _lock
+        # One step of an exchange that touches the port's descriptor (a read slice, a write, a
+        # queue poll) holds _io, and a close detaches and closes the port only under it: closed
+        # between two steps, the descriptor's number could be taken by an open() elsewhere before
+        # the next step, and a command's bytes went into that file (session 53). Re-entrant: a
+        # close from a signal handler that interrupted a step of its own thread. _steps counts
+        # the steps in progress of _io's holder; such a close leaves its port to the step's end
+        # (_after_step: the port, and the lock share to let go)
+        self._io = threading.RLock()
+        self._steps = 0
+        self._after_step: list[tuple[serial.SerialBase | None, PortHold | None]] = []
+        # A close that did not get the exchange's lock: the exchange stops at its next step, and
+        # does not reopen the port (cleared when the next query or open takes the lock)
+        self._closing = False
+        # A close from a signal handler in the thread whose switch-off is the running exchange:
+        # left to that query's end, which the handler must not cut short
+        self._close_after_query = False
         self._last_exchange = float("-inf")
         # An exchange cut short by a signal after its command was written: (command, the reply's
         # deadline). The controller still answers it, and that late reply must not be read as the
@@ -592,7 +645,8 @@ class SerialTransport:
     @property
     def is_open(self) -> bool:
         """Whether the port is open."""
-        return self._serial is not None and self._serial.is_open
+        ser = self._serial  # read once: a close from another thread may set it None between two reads
+        return ser is not None and ser.is_open
 
     def open(self) -> None:
         """Open the port (8N1, DTR and RTS asserted); a no-op when it is open. An open of a
@@ -601,16 +655,33 @@ class SerialTransport:
         port and is raised, as is a link lost during the check (a :class:`DeviceError`, the port
         left closed: pyserial's exception named no port and reached the operator as a traceback)."""
         with self._lock:  # the check is an exchange: not interleaved with another thread's
-            if not self.is_open:
-                try:
-                    self._reopen(None, None)
-                except _LINK_ERRORS as exc:
-                    self._close_port()
-                    raise DeviceError(
-                        f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
-                    ) from exc
+            try:
+                self._taken(None)
+                if not self.is_open:
+                    try:
+                        self._reopen(None, None)
+                    except _LINK_ERRORS as exc:
+                        self._close_port()
+                        raise DeviceError(
+                            f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
+                        ) from exc
+            finally:
+                self._given_back()
+
+    def _taken(self, command: str | None) -> None:
+        """The exchange's lock just taken by this thread for ``command`` (None: an open)."""
+        self._owner, self._running, self._closing = threading.get_ident(), (command, time.monotonic()), False
+
+    def _given_back(self) -> None:
+        """Before the exchange's lock is released: a close left to this query's end is done now."""
+        self._owner = self._running = None
+        if self._close_after_query:
+            self._close_after_query = False
+            self._close_all()
 
     def _open_port(self) -> None:
+        if self._closing:  # closed meanwhile by another thread: not opened again behind its back
+            raise _ClosedUnderIt("the link was closed before the port was reopened")
         # before pyserial opens the port (DTR, RTS, a flush): held by another process, nothing is touched
         if self._hold is None:
             self._hold = hold_port(self.url)
@@ -644,7 +715,15 @@ class SerialTransport:
             with contextlib.suppress(serial.SerialException, OSError):
                 ser.close()
             raise
-        self._serial = ser
+        with self._io:
+            if self._closing:  # closed by another thread as it opened: that close is not undone
+                with contextlib.suppress(serial.SerialException, OSError):
+                    ser.close()
+                hold, self._hold = self._hold, None  # (the close let its own go: this one is taken since)
+                if hold is not None:
+                    hold.release()
+                raise _ClosedUnderIt("the link was closed while the port was being reopened")
+            self._serial = ser
         self._opened_once = True
         if self._pending is not None:
             # an exchange a signal cut short: its reply is still on its way and may come on the
@@ -708,27 +787,117 @@ class SerialTransport:
         return (held.st_rdev, held.st_ino, held.st_dev) == (opened.st_rdev, opened.st_ino, opened.st_dev)
 
     def close(self) -> None:
-        """Close the port and let go of this link's share of its lock; safe to call more than once."""
+        """Close the port and let go of this link's share of its lock; safe to call more than once.
+
+        Another thread's exchange in progress is waited for, at most :func:`close_wait_s` (its own
+        worst case by its time-outs) -- a switch-off (:attr:`on_reconnect`'s ``blind`` commands,
+        XOF) for its whole query, reconnects included (:meth:`_switch_off_wait_s`): a close never
+        cuts one short that is still within its time-outs. Past that, the link is marked closing
+        and the port closed between two of the exchange's steps: the exchange stops at its next
+        step without touching the port's descriptor (whose number an open() elsewhere may have
+        taken by then) and fails as a lost link, not reconnected. Called from a signal handler in
+        the thread whose exchange holds the link, it cannot wait: the exchange stops likewise --
+        unless it is a switch-off, which goes on; the port is closed at its end."""
+        me = threading.get_ident()
+        if self._owner == me:
+            if self._running is not None and self._is_switch_off(self._running[0]):
+                self._close_after_query = True
+                return
+            self._close_under_exchange()
+            return
+        try:
+            if self._wait_for_exchange():
+                self._close_all()
+            else:
+                self._close_under_exchange()
+        finally:
+            if self._closer == me:
+                self._closer = None
+                self._lock.release()
+
+    def _close_all(self) -> None:
+        """Close the port and let go of the lock's share (the exchange's lock held, or its end)."""
         self._close_port()
         hold, self._hold = self._hold, None
         if hold is not None:
             hold.release()
 
+    def _is_switch_off(self, command: str | None) -> bool:
+        return command is not None and command.split(" ", 1)[0] in getattr(self.on_reconnect, "blind", ())
+
+    def _switch_off_wait_s(self) -> float:
+        """A switch-off's whole query at its longest by its time-outs: each attempt (the first,
+        and one per reconnect allowed, ``retries``) may reopen the port (:data:`_OPEN_WAIT_S`; a
+        local device's :data:`_OPEN_WAIT_LOCAL_S`), check the device (one exchange) and write the
+        switch-off blind (a write and a drain), then exchange (:func:`close_wait_s`); a reconnect
+        first waits out the old port's output."""
+        one = close_wait_s(self.timeout_s, self.write_timeout_s, self.min_interval_s)
+        opening = _OPEN_WAIT_S if "://" in self.url else _OPEN_WAIT_LOCAL_S
+        attempt = opening + one + 2 * self.write_timeout_s + one
+        return (self.retries + 1) * attempt + self.retries * self.write_timeout_s
+
+    def _wait_for_exchange(self) -> bool:
+        """Take the exchange's lock, waiting for another thread's exchange at most its worst case
+        counted from this call (a switch-off's from its own start): True once taken."""
+        start = time.monotonic()
+        one = close_wait_s(self.timeout_s, self.write_timeout_s, self.min_interval_s)
+        while True:
+            limit = start + one
+            running = self._running
+            if running is not None and self._is_switch_off(running[0]):
+                limit = max(limit, running[1] + self._switch_off_wait_s())
+            left = limit - time.monotonic()
+            if left <= 0:
+                return False
+            # in slices: an exchange that starts meanwhile may be a switch-off, waited for longer.
+            # Taken and recorded in one step for a stop signal (close() releases what is
+            # recorded): one landing between the two left the link locked for good
+            with held(*_STOPS):
+                if self._lock.acquire(timeout=min(left, _READ_SLICE_S)):
+                    self._closer = threading.get_ident()
+                    return True
+
+    def _close_under_exchange(self) -> None:
+        """Close the link under an exchange that holds its lock: marked closing, the port detached
+        and closed between two of its steps (the one in progress, in another thread, ends first:
+        a read slice at most), so that no step touches the descriptor again. A step of this very
+        thread in progress (a signal handler interrupted it) touches it once more as the handler
+        returns: the port is then closed at that step's end."""
+        with self._io:
+            self._closing = True
+            ser, self._serial = self._serial, None
+            hold, self._hold = self._hold, None
+            if self._steps:
+                self._after_step.append((ser, hold))
+                return
+            self._shut(ser, hold)
+
+    def _shut(self, ser, hold: PortHold | None = None) -> None:
+        """Close the detached port ``ser`` (its unsent output waited for, or discarded) and let go
+        of ``hold``, this link's share of the port's lock."""
+        try:
+            if ser is not None:
+                try:
+                    self._await_output(ser)
+                finally:  # a stop cuts the wait short: the bytes are discarded, the port closed all the same
+                    self._discard_output(ser)
+                    try:
+                        ser.close()
+                    except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
+                        pass
+                self.log.info("%s closed", self.url)
+        finally:
+            if hold is not None:
+                hold.release()
+
     def _close_port(self) -> None:
         """Close the port, its lock kept (a reconnect reopens it) -- unless its node is gone (an
         adapter unplugged): then its descriptor is closed too, or the re-plugged adapter would
-        come back under another name (:meth:`PortHold.let_go_if_gone`)."""
-        ser, self._serial = self._serial, None
-        if ser is not None:
-            try:
-                self._await_output(ser)
-            finally:  # a stop cuts the wait short: the bytes are discarded, the port closed all the same
-                self._discard_output(ser)
-                try:
-                    ser.close()
-                except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
-                    pass
-            self.log.info("%s closed", self.url)
+        come back under another name (:meth:`PortHold.let_go_if_gone`). Under the port's step
+        lock: a close from another thread, past its wait, finds the port closed or whole."""
+        with self._io:
+            ser, self._serial = self._serial, None
+            self._shut(ser)
         if self._hold is not None:
             self._hold.let_go_if_gone()
 
@@ -810,60 +979,68 @@ class SerialTransport:
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         payload = self._payload(command)
         with self._lock:
-            attempt, lost = 0, None
-            while True:
-                try:
-                    if not self.is_open:
-                        self._reopen(command, lost)
-                    return self._exchange(command, payload)
-                except _LINK_ERRORS as exc:
-                    # Write time-outs are a device that does not take data, not a lost link.
-                    if isinstance(exc, _DrainTimedOut):
-                        # not WriteTimedOut, which says nothing went: a switch-off reads this XOF as sent
-                        raise DeviceError(
-                            f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
-                            "but the port's output is not draining (it may still reach the controller)"
-                        ) from exc
-                    if isinstance(exc, _StillQueued):
-                        raise WriteTimedOut(
-                            f"{self.url}: {command}: not sent: the port's output still holds "
-                            f"{' '.join(exc.earlier)} after {self.write_timeout_s:g} s (not draining)"
-                        ) from exc
-                    if isinstance(exc, serial.SerialTimeoutException):
-                        raise WriteTimedOut(
-                            f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
-                        ) from exc
-                    attempt += 1
-                    self._close_port()
-                    if command.split(" ", 1)[0] in getattr(self.on_reconnect, "not_resent", ()):
-                        # it may have reached the controller, and the device behind the reopened
-                        # port is known only to be of the model: resent, XON switched on a second
-                        # unit with settings this session never sent. The caller switches off
-                        # (XOF is resent: it reconnects, checked) and the tube is said to be on.
-                        raise DeviceError(
-                            f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
-                            "controller; not sent again after a reconnect: X-rays may be on"
-                        ) from exc
-                    if isinstance(exc, _ClosedUnderIt):
-                        # close() from another thread: reopened here, the link was open again, its
-                        # port's lock held, after close() had returned -- the close undone (after the
-                        # not-resent check above: its "X-rays may be on" is said first)
-                        raise DeviceError(
-                            f"{self.url}: {command}: link lost ({exc}); not reconnected: the link was closed"
-                        ) from exc
-                    if attempt > self.retries:
-                        raise DeviceError(
-                            f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
-                        ) from exc
-                    self.log.warning(
-                        "%s: link lost during %s (%s); reconnecting (%d/%d)",
-                        self.url,
-                        command,
-                        exc,
-                        attempt,
-                        self.retries,
-                    )
-                    lost = exc  # reopened at the top of the loop, where a link lost again is retried
+            try:
+                self._taken(command)
+                return self._query(command, payload)
+            finally:
+                self._given_back()
+
+    def _query(self, command: str, payload: bytes) -> str:
+        """:meth:`query`'s attempts, the exchange's lock held."""
+        attempt, lost = 0, None
+        while True:
+            try:
+                if not self.is_open:
+                    self._reopen(command, lost)
+                return self._exchange(command, payload)
+            except _LINK_ERRORS as exc:
+                # Write time-outs are a device that does not take data, not a lost link.
+                if isinstance(exc, _DrainTimedOut):
+                    # not WriteTimedOut, which says nothing went: a switch-off reads this XOF as sent
+                    raise DeviceError(
+                        f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
+                        "but the port's output is not draining (it may still reach the controller)"
+                    ) from exc
+                if isinstance(exc, _StillQueued):
+                    raise WriteTimedOut(
+                        f"{self.url}: {command}: not sent: the port's output still holds "
+                        f"{' '.join(exc.earlier)} after {self.write_timeout_s:g} s (not draining)"
+                    ) from exc
+                if isinstance(exc, serial.SerialTimeoutException):
+                    raise WriteTimedOut(
+                        f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
+                    ) from exc
+                attempt += 1
+                self._close_port()
+                if command.split(" ", 1)[0] in getattr(self.on_reconnect, "not_resent", ()):
+                    # it may have reached the controller, and the device behind the reopened
+                    # port is known only to be of the model: resent, XON switched on a second
+                    # unit with settings this session never sent. The caller switches off
+                    # (XOF is resent: it reconnects, checked) and the tube is said to be on.
+                    raise DeviceError(
+                        f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
+                        "controller; not sent again after a reconnect: X-rays may be on"
+                    ) from exc
+                if isinstance(exc, _ClosedUnderIt):
+                    # close() from another thread: reopened here, the link was open again, its
+                    # port's lock held, after close() had returned -- the close undone (after the
+                    # not-resent check above: its "X-rays may be on" is said first)
+                    raise DeviceError(
+                        f"{self.url}: {command}: link lost ({exc}); not reconnected: the link was closed"
+                    ) from exc
+                if attempt > self.retries:
+                    raise DeviceError(
+                        f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
+                    ) from exc
+                self.log.warning(
+                    "%s: link lost during %s (%s); reconnecting (%d/%d)",
+                    self.url,
+                    command,
+                    exc,
+                    attempt,
+                    self.retries,
+                )
+                lost = exc  # reopened at the top of the loop, where a link lost again is retried
 
     def _reopen(self, command: str | None, lost: BaseException | None) -> None:
         """Open the port (the lock held) and, when it was open before, let :attr:`on_reconnect`
@@ -1027,25 +1204,31 @@ class SerialTransport:
         even when the kernel takes nothing, and Windows drops what a timed-out write left).
         Other links (sockets, RFC 2217, Windows) use pyserial's write: a time-out there stays one."""
         fd = getattr(ser, "fd", None)
+        doing = f"it wrote {command}"
         if os.name != "posix" or not isinstance(fd, int) or getattr(ser, "_rs485_mode", None) is not None:
-            with _sigpipe_held():  # socket:// and rfc2217:// write to a TCP socket: EPIPE, not death
+            # socket:// and rfc2217:// write to a TCP socket: EPIPE, not death
+            with self._closed_as_lost(ser, doing), _sigpipe_held():
                 ser.write(payload)
         else:
             view, deadline = memoryview(payload), time.monotonic() + self.write_timeout_s
             while view:
-                try:
-                    view = view[os.write(fd, view) :]
-                except BlockingIOError:
-                    pass
-                except OSError as exc:
-                    raise serial.SerialException(f"write failed: {exc}") from exc
+                # each write and wait a step of its own: a close between two finds fd, the number,
+                # perhaps another file's (session 53: the command went into it)
+                with self._closed_as_lost(ser, doing):
+                    try:
+                        view = view[os.write(fd, view) :]
+                    except BlockingIOError:
+                        pass
+                    except OSError as exc:
+                        raise serial.SerialException(f"write failed: {exc}") from exc
                 if not view:
                     break
                 left = deadline - time.monotonic()
                 if left <= 0:
                     sent = len(payload) - len(view)
                     raise serial.SerialTimeoutException(f"Write timeout ({sent} of {len(payload)} bytes sent)")
-                select.select([], [fd], [], min(left, 0.05))
+                with self._closed_as_lost(ser, doing):
+                    select.select([], [fd], [], min(left, 0.05))
 
     def _queue_left(self, ser, command: str) -> int:
         """The bytes still queued as ``command`` drains. Why not :func:`_unsent`: a port gone in the
@@ -1058,9 +1241,14 @@ class SerialTransport:
             The queue cannot be read: a lost link, the command's fate unknown."""
         fd = getattr(ser, "fd", None)
         try:
-            if not isinstance(fd, int):
-                raise OSError("the port was closed")
-            return int(ser.out_waiting or 0)
+            with self._closed_as_lost(ser, f"{command} drained"):
+                if not isinstance(fd, int):
+                    raise OSError("the port was closed")
+                return int(ser.out_waiting or 0)
+        except _ClosedUnderIt as exc:
+            if self._closing or ser is not self._serial:
+                raise  # closed by close(): a lost link not reconnected, not a port gone by itself
+            raise _GoneMidDrain(f"the port went while {command} drained: {exc.__cause__ or exc}") from exc
         except (serial.SerialException, OSError, ValueError, TypeError) as exc:
             raise _GoneMidDrain(f"the port went while {command} drained: {exc}") from exc
 
@@ -1073,9 +1261,10 @@ class SerialTransport:
         polled instead, as :meth:`_await_output` does; a link whose queue cannot be read (a URL)
         keeps ``ser.flush()``, whose wait is bounded by its own time-outs. A port that goes while
         its queue is polled is a lost link (:class:`_GoneMidDrain`), not a drained command."""
-        if _queued(ser) is None:
-            ser.flush()  # a URL; or a local port gone already: tcdrain fails, the link's loss
-            return
+        with self._closed_as_lost(ser, f"{command} drained"):
+            if _queued(ser) is None:
+                ser.flush()  # a URL; or a local port gone already: tcdrain fails, the link's loss
+                return
         deadline = time.monotonic() + self.write_timeout_s
         while left := self._queue_left(ser, command):
             wait = deadline - time.monotonic()
@@ -1100,17 +1289,30 @@ class SerialTransport:
 
     @contextlib.contextmanager
     def _closed_as_lost(self, ser, doing: str):
-        """A port found closed under the exchange (:meth:`close` from another thread, which does
-        not take the exchange's lock) raised as the lost link it is (:class:`_ClosedUnderIt`).
-        Why: pyserial's ``in_waiting`` and ``read`` on a port closed under them raise ``TypeError``
-        (its descriptor None), not a link error, and the user got a traceback (session 53). The
-        error is raised as such only where the port is indeed closed: on an open port it is a bug."""
-        try:
-            yield
-        except (TypeError, AttributeError, ValueError, *_LINK_ERRORS) as exc:
-            if ser is not None and ser is self._serial and getattr(ser, "is_open", False):
-                raise
-            raise _ClosedUnderIt(f"the port was closed under the exchange as {doing}: {exc}") from exc
+        """One step of the exchange that touches the port ``ser``'s descriptor, under the step
+        lock (``_io``), which a :meth:`close` under the exchange takes to close the port: a link
+        closed (marked closing, or ``ser`` no longer its port) raises the lost link it is
+        (:class:`_ClosedUnderIt`) before the descriptor is touched -- its number may be another
+        file's by now. A port found closed within the step (pyserial's ``in_waiting`` and
+        ``read`` raise ``TypeError`` then, its descriptor None: a traceback, session 53) is read
+        so too; on an open port the error is a bug, raised as such."""
+        with self._io:
+            self._steps += 1
+            try:
+                if self._closing or ser is None or ser is not self._serial:
+                    raise _ClosedUnderIt(f"the link was closed under the exchange before {doing}")
+                try:
+                    yield
+                except (TypeError, AttributeError, ValueError, *_LINK_ERRORS) as exc:
+                    if isinstance(exc, _ClosedUnderIt) or (
+                        ser is self._serial and not self._closing and getattr(ser, "is_open", False)
+                    ):
+                        raise
+                    raise _ClosedUnderIt(f"the port was closed under the exchange as {doing}: {exc}") from exc
+            finally:
+                self._steps -= 1
+                while not self._steps and self._after_step:  # a close from a handler in this step
+                    self._shut(*self._after_step.pop())
 
     def _read_some(self, ser, doing: str) -> bytes:
         """What has come, or one read slice's wait for it (the port's read time-out)."""
@@ -1290,10 +1492,12 @@ class SerialTransport:
         always high) says nothing. Only a local port's line is read: a network link's modem lines
         are its terminal server's, which ``rfc2217://`` polls over the network, so each read could
         wait pyserial's network time-out (3 s) inside a switch-off's wait (review s46rv)."""
-        if not isinstance(self._serial, serial.Serial):  # serialposix / serialwin32: a local port
+        ser = self._serial
+        if not isinstance(ser, serial.Serial):  # serialposix / serialwin32: a local port
             return ""
         try:
-            low = self._serial.dsr is False
+            with self._closed_as_lost(ser, "it read DSR"):  # (a closed link raises: nothing said)
+                low = ser.dsr is False
         except (serial.SerialException, OSError, ValueError, AttributeError, NotImplementedError):
             return ""
         if not low:

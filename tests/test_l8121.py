@@ -4320,7 +4320,7 @@ import serial
 from acquisition.transport import SerialTransport
 url = sys.argv[1]
 transport = SerialTransport(url, timeout_s=0.3, write_timeout_s=0.3, open=False)
-ser = serial.serial_for_url(url, timeout=0.3, write_timeout=0.3)
+ser = transport._serial = serial.serial_for_url(url, timeout=0.3, write_timeout=0.3)  # its port, as an exchange's
 ser.write(b"R")  # open: the peer may reset now (it resets only after reading this)
 deadline = time.monotonic() + 20  # the peer resets the connection when its thread gets to it
 while time.monotonic() < deadline:  # written, then ECONNRESET, then EPIPE: what raised SIGPIPE

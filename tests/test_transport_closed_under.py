@@ -1,10 +1,12 @@
-"""A port closed under an exchange: :meth:`SerialTransport.close` from another thread (it does not
-take the exchange's lock) while the exchange still reads. pyserial's ``in_waiting`` on the closed
-port raised ``TypeError`` (its descriptor None), not a link error, in every read path -- a
-traceback to the user instead of the lost link it is. Each test closes the real pty port at a
-known point of a real exchange with the emulator: between two read slices (a spy on the port's
-``read`` holds the exchange there while the test's thread closes it), or, for the flush before
-a command, in the spacing's sleep (the lock held, nothing read yet)."""
+"""A port closed under an exchange: :meth:`SerialTransport.close` from another thread while the
+exchange still reads. pyserial's ``in_waiting`` on the closed port raised ``TypeError`` (its
+descriptor None), not a link error, in every read path -- a traceback to the user instead of the
+lost link it is. The close now waits for the exchange, at most its worst case
+(:func:`acquisition.transport.close_wait_s`), then closes the port between two of its steps;
+each test holds a real exchange with the emulator on a real pty at a known point, between two
+steps (a spy on the transport's read slice, or on its spacing's wait, holds it there, stalled,
+until the test's thread has closed the link), so that the close is past its wait. Short
+time-outs keep that wait short."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import pytest
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.errors import DeviceError, NoReply, WriteTimedOut
-from acquisition.transport import SerialTransport
+from acquisition.transport import SerialTransport, close_wait_s
 
 
 def _run(call) -> tuple[threading.Thread, dict]:
@@ -34,31 +36,43 @@ def _run(call) -> tuple[threading.Thread, dict]:
     return thread, out
 
 
+# the longest the close may wait for the exchange on these tests' links, and a loaded machine's slack
+_TIMEOUTS = {"timeout_s": 0.25, "write_timeout_s": 0.05, "min_interval_s": 0.0}
+_SLACK_S = 0.5
+
+
 class _CloseAfterARead:
-    """Close the link (:meth:`SerialTransport.close`, from the test's thread) once the port's next
-    ``read`` has returned, before the exchange goes on: the exchange then finds its port closed
-    under it at its next look, as when a close lands between two read slices. The read itself is
-    the port's; the spy only waits for the close to be over before returning what it read."""
+    """Close the link (:meth:`SerialTransport.close`, from the test's thread) once the exchange's
+    next read slice (``step``: or another step) has returned, before the exchange goes on: the
+    exchange, stalled there past the close's wait, then finds its link closed at its next step,
+    as when a close lands between two read slices of an exchange slower than its time-outs. The
+    step itself is the transport's; the spy only holds the exchange until the close is over."""
 
-    def __init__(self, link: SerialTransport):
+    def __init__(self, link: SerialTransport, step: str = "_read_some"):
         self.link, self.read_once, self.closed = link, threading.Event(), threading.Event()
-        ser, real = link._serial, link._serial.read
+        real = getattr(link, step)
 
-        def read(size: int = 1) -> bytes:
-            data = real(size)
+        def spy(*args, **kwargs):
+            out = real(*args, **kwargs)
             if not self.read_once.is_set():
                 self.read_once.set()
-                self.closed.wait(2.0)
-            return data
+                self.closed.wait(5.0)
+            return out
 
-        ser.read = read
+        setattr(link, step, spy)
 
     def close_after_it(self) -> None:
         assert self.read_once.wait(2.0), "the exchange never read"
+        link = self.link
+        t0 = time.monotonic()
         try:
-            self.link.close()
+            link.close()
         finally:
             self.closed.set()
+        # it waited for the exchange, at most its worst case, and not for the stalled exchange's end
+        bound = close_wait_s(link.timeout_s, link.write_timeout_s, link.min_interval_s)
+        assert time.monotonic() - t0 <= bound + _SLACK_S
+        assert not link.is_open
 
 
 def _assert_lost_link(out: dict, command: str) -> None:
@@ -77,7 +91,7 @@ def served():
 
 def test_a_port_closed_while_the_reply_is_read_is_a_lost_link_and_the_command_owed(served):
     model, server = served
-    link = SerialTransport(server.url, timeout_s=1.0, min_interval_s=0.0, retries=0)
+    link = SerialTransport(server.url, **_TIMEOUTS, retries=0)
     try:
         model.hold_once()  # no reply comes: the exchange stays in its read
         spy = _CloseAfterARead(link)
@@ -94,7 +108,7 @@ def test_a_port_closed_while_the_reply_is_read_is_a_lost_link_and_the_command_ow
 
 def test_a_port_closed_while_a_late_reply_is_awaited_is_a_lost_link(served):
     model, server = served
-    link = SerialTransport(server.url, timeout_s=0.4, min_interval_s=0.0, retries=0)
+    link = SerialTransport(server.url, **_TIMEOUTS, retries=0)
     try:
         model.hold_once()
         with pytest.raises(NoReply):
@@ -115,7 +129,7 @@ def test_a_port_closed_while_an_interrupted_exchange_is_completed_is_a_lost_link
     profile hook at the read's first call); the next exchange completes it first (its reply
     awaited), and the port is closed in that wait."""
     model, server = served
-    link = SerialTransport(server.url, timeout_s=1.0, min_interval_s=0.0, retries=0)
+    link = SerialTransport(server.url, **_TIMEOUTS, retries=0)
     try:
         model.hold_once()
         fired = []
@@ -146,15 +160,13 @@ def test_a_port_closed_while_an_interrupted_exchange_is_completed_is_a_lost_link
 
 def test_a_port_closed_before_the_flush_ahead_of_a_command_is_a_lost_link_and_nothing_sent(served):
     model, server = served
-    link = SerialTransport(server.url, timeout_s=0.5, min_interval_s=0.3, retries=0)
+    link = SerialTransport(server.url, **{**_TIMEOUTS, "min_interval_s": 0.05}, retries=0)
     try:
         assert link.query("TYP") == "TYP L8121-01"
         before = len(model.commands)
-        thread, out = _run(lambda: link.query("STS"))  # sleeps the spacing (0.3 s), lock held
-        deadline = time.monotonic() + 2.0
-        while not link._lock.locked() and time.monotonic() < deadline:
-            time.sleep(0.005)
-        link.close()
+        spy = _CloseAfterARead(link, "_wait_spacing")  # stalled after the spacing, lock held
+        thread, out = _run(lambda: link.query("STS"))
+        spy.close_after_it()
         thread.join(3.0)
         assert not thread.is_alive()
         _assert_lost_link(out, "STS")
@@ -169,7 +181,7 @@ def test_a_link_closed_under_an_exchange_stays_closed(served):
     ``close()`` had returned -- a close from another thread (a shutdown, a guardian) undone. It is
     not reconnected: the command fails as a lost link, the link stays closed, its lock let go."""
     model, server = served
-    link = SerialTransport(server.url, timeout_s=1.0, min_interval_s=0.0)  # retries: the default
+    link = SerialTransport(server.url, **_TIMEOUTS)  # retries: the default
     assert link.retries >= 1
     try:
         model.hold_once()
@@ -194,6 +206,7 @@ def test_a_switch_on_whose_port_is_closed_under_it_still_says_x_rays_may_be_on(s
     model, server = served
     with L8121(server.url, dialect="A", poll_s=0.05, min_interval_s=0.0) as src:
         link = src._transport
+        link.timeout_s, link.write_timeout_s = _TIMEOUTS["timeout_s"], _TIMEOUTS["write_timeout_s"]
         assert "XON" in link.on_reconnect.not_resent
         model.hold_once()
         spy = _CloseAfterARead(link)

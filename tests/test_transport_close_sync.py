@@ -1,0 +1,271 @@
+""":meth:`SerialTransport.close` from another thread while an exchange runs, on a real pty.
+
+Why: a close that did not wait for the exchange freed the port's descriptor NUMBER under it; an
+``open()`` elsewhere in the process (a file, a socket) could take that number before the
+exchange's next ``os.write``, and the command's bytes went into that file. The close now waits
+for the exchange (at most :func:`acquisition.transport.close_wait_s`); past it, it marks the link
+closing and the exchange stops at its next step without touching the descriptor."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from acquisition.errors import DeviceError, NoReply, WriteTimedOut
+from acquisition.transport import SerialTransport, close_wait_s
+
+# a loaded CI machine's scheduling slack on a wait measured from outside
+_SLACK_S = 0.5
+
+
+def _run(call) -> tuple[threading.Thread, dict]:
+    out: dict = {}
+
+    def run():
+        try:
+            out["reply"] = call()
+        except BaseException as exc:  # the outcome looked at by the test
+            out["raised"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, out
+
+
+def _wait_for(predicate, within_s: float = 2.0) -> None:
+    deadline = time.monotonic() + within_s
+    while not predicate():
+        assert time.monotonic() < deadline, "the exchange never got there"
+        time.sleep(0.002)
+
+
+def _files_on(number: int, folder) -> list[tuple[int, str]]:
+    """Files opened until one gets the descriptor ``number`` (open takes the lowest free one)."""
+    opened = []
+    for i in range(256):
+        path = str(folder / f"reuse{i}")
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        opened.append((fd, path))
+        if fd == number:
+            return opened
+    return opened
+
+
+@pytest.fixture
+def stuck_pty():
+    """A pty whose output nobody reads, its buffer filled: a command's write waits in its loop."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    yield master, slave, path
+    os.close(master)
+    os.close(slave)
+
+
+def _fill(path: str) -> None:
+    """Fill the pty's output until it takes nothing more, even after the kernel has moved what it
+    holds on to the other side's buffer (it does so a moment after a write)."""
+    fd = os.open(path, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        while True:
+            taken = 0
+            try:
+                while True:
+                    taken += os.write(fd, b"\0" * 4096)
+            except BlockingIOError:
+                pass
+            if not taken:
+                return
+            time.sleep(0.05)
+    finally:
+        os.close(fd)
+
+
+def test_a_close_during_a_write_never_lets_the_command_into_a_file_that_took_its_descriptor(stuck_pty, tmp_path):
+    _, _, path = stuck_pty
+    link = SerialTransport(path, timeout_s=0.2, write_timeout_s=0.3, min_interval_s=0.0, retries=0)
+    opened = []
+    try:
+        _fill(path)  # after the open: pyserial's raw mode set, the output buffer full
+        number = link._serial.fd
+        thread, out = _run(lambda: link.query("STS"))
+        _wait_for(lambda: link.commands_written == 1)  # in its write loop, the descriptor in hand
+        time.sleep(0.02)
+        t0 = time.monotonic()
+        link.close()
+        closed_s = time.monotonic() - t0
+        opened = _files_on(number, tmp_path)  # right after close: the descriptor's number reused
+        assert opened[-1][0] == number
+        thread.join(3.0)
+        assert not thread.is_alive()
+        for _, file in opened:
+            with open(file, "rb") as f:
+                assert b"STS" not in f.read(), "the command went into a file that took the port's descriptor"
+        # the close waited for the exchange, which ended on its own write time-out: nothing sent
+        assert isinstance(out.get("raised"), WriteTimedOut), out
+        assert closed_s <= close_wait_s(0.2, 0.3, 0.0) + _SLACK_S
+        assert not link.is_open
+    finally:
+        for fd, _ in opened:
+            os.close(fd)
+        link.close()
+
+
+@pytest.fixture
+def served():
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+
+    model = L8121Model(warmed_up=True)
+    with PtyServer(model) as server:
+        yield model, server
+
+
+class _StalledCheck:
+    """A reconnect check (:attr:`SerialTransport.on_reconnect`) stalled until the test says go --
+    a process stalled past its time-outs -- then one real exchange (TYP). ``blind``: the commands
+    a driver names its switch-off (acquisition.l8121.Reidentify's XOF)."""
+
+    blind = frozenset({"XOF"})
+
+    def __init__(self):
+        self.entered, self.go, self.reply = threading.Event(), threading.Event(), None
+
+    def __call__(self, ask):
+        self.entered.set()
+        self.go.wait(5.0)
+        self.reply = ask("TYP")
+
+
+_SHORT = {"timeout_s": 0.25, "write_timeout_s": 0.05, "min_interval_s": 0.0}
+
+
+def test_an_exchange_past_the_close_s_wait_stops_without_touching_the_descriptor(served, tmp_path):
+    """A query on a closed link reopens it and checks the device: two exchanges, past one's worst
+    case. The close, past its wait, closes the port under it; a file opened right after takes the
+    port's descriptor number; the check's exchange then stops at its next step: nothing goes into
+    that file, nothing to the controller, and the query fails as a lost link, not reconnected."""
+    model, server = served
+    link = SerialTransport(server.url, **_SHORT, retries=0)
+    opened, check = [], _StalledCheck()
+    try:
+        assert link.query("TYP") == "TYP L8121-01"
+        link._close_port()  # as a lost link leaves it: the next query reopens and checks
+        link.on_reconnect = check
+        thread, out = _run(lambda: link.query("STS"))
+        assert check.entered.wait(2.0)
+        number = link._serial.fd
+        before = len(model.commands)
+        t0 = time.monotonic()
+        link.close()
+        closed_s = time.monotonic() - t0
+        opened = _files_on(number, tmp_path)
+        assert opened[-1][0] == number
+        check.go.set()
+        thread.join(3.0)
+        assert not thread.is_alive()
+        for _, file in opened:
+            with open(file, "rb") as f:
+                assert f.read() == b"", "a command went into a file that took the port's descriptor"
+        assert model.commands[before:] == []
+        raised = out.get("raised")
+        assert isinstance(raised, DeviceError) and not isinstance(raised, NoReply), out
+        assert "link was closed" in str(raised), str(raised)
+        bound = close_wait_s(**_SHORT)
+        assert bound <= closed_s <= bound + _SLACK_S  # waited its bound, not for the stalled check
+        assert not link.is_open and link._hold is None
+    finally:
+        check.go.set()
+        for fd, _ in opened:
+            os.close(fd)
+        link.close()
+
+
+def test_a_running_switch_off_is_not_cut_short_by_a_close(served):
+    """The switch-off (XOF) as the running exchange, in a reconnect longer than one exchange's
+    worst case: the close waits for it to reach the controller and end, then closes."""
+    model, server = served
+    link = SerialTransport(server.url, **_SHORT, retries=0)
+    check = _StalledCheck()
+    try:
+        assert link.query("TYP") == "TYP L8121-01"
+        link._close_port()
+        link.on_reconnect = check
+        thread, out = _run(lambda: link.query("XOF"))
+        assert check.entered.wait(2.0)
+        stall_s = close_wait_s(**_SHORT) + 0.2  # past a plain exchange's wait
+        threading.Timer(stall_s, check.go.set).start()
+        t0 = time.monotonic()
+        link.close()
+        closed_s = time.monotonic() - t0
+        thread.join(3.0)
+        assert out.get("reply") == "XOF", out
+        assert model.commands[-1] == "XOF"
+        assert closed_s >= stall_s
+        assert not link.is_open
+    finally:
+        check.go.set()
+        link.close()
+
+
+def test_a_close_from_a_signal_handler_in_the_exchange_s_own_thread_does_not_deadlock(served):
+    """A signal handler that closes the link, run in the very thread whose exchange holds it (in
+    its read): the close does not wait for its own thread; the exchange stops at its next step
+    as a lost link, and the port is closed."""
+    import signal
+
+    model, server = served
+    link = SerialTransport(server.url, timeout_s=2.0, write_timeout_s=0.05, min_interval_s=0.0, retries=0)
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: link.close())
+    try:
+        model.hold_once()  # no reply: the exchange reads until its time-out
+        timer = threading.Timer(0.2, signal.pthread_kill, (threading.main_thread().ident, signal.SIGUSR1))
+        timer.start()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match="link was closed|closed under") as caught:
+            link.query("STS")
+        assert not isinstance(caught.value, NoReply)
+        assert time.monotonic() - t0 < 2.0  # stopped at its next step, not at its 2 s time-out
+        assert not link.is_open and link._hold is None
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        link.close()
+
+
+def test_a_close_from_a_signal_handler_during_its_own_thread_s_switch_off_leaves_it_to_its_end(served):
+    """The handler's close lands in the running switch-off's reconnect check, in the same thread:
+    the switch-off is not cut short (XOF reaches the controller, its reply read); the port is
+    closed as its query ends."""
+    import signal
+
+    model, server = served
+    link = SerialTransport(server.url, **_SHORT, retries=0)
+    check = _StalledCheck()
+    handled = []
+
+    def handler(signum, frame):
+        handled.append(link.is_open)
+        link.close()
+
+    previous = signal.signal(signal.SIGUSR1, handler)
+    try:
+        assert link.query("TYP") == "TYP L8121-01"
+        link._close_port()
+        link.on_reconnect = check
+
+        def fire():
+            if check.entered.wait(2.0):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGUSR1)
+                time.sleep(0.1)
+            check.go.set()
+
+        threading.Thread(target=fire, daemon=True).start()
+        assert link.query("XOF") == "XOF"
+        assert handled == [True]  # the handler ran within the switch-off, the port open
+        assert model.commands[-1] == "XOF" and check.reply == "TYP L8121-01"
+        assert not link.is_open and link._hold is None
+    finally:
+        check.go.set()
+        signal.signal(signal.SIGUSR1, previous)
+        link.close()
