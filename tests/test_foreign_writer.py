@@ -6,6 +6,8 @@ The frames are a small disc-in-body phantom drawn here; each variant holds the v
 so the corrected steps must agree to float rounding (float32 storage of integer counts below 2^24
 is exact; the calibration's arithmetic is the same float64 either way)."""
 
+import warnings
+
 import h5py
 import numpy as np
 import pytest
@@ -165,6 +167,46 @@ def test_a_step_whose_frames_record_two_ratios_is_said_and_averaged(tmp_path):
     with pytest.warns(UserWarning, match=r"step 2's frames .* from 0\.2 \(frame 8\) to 0\.22 \(frame 9\).* 0\.21;"):
         steps = load_steps(path)
     assert steps.ratios[1] == pytest.approx(0.21, abs=1e-12)
+
+
+def _regapped(tmp_path, ratio=None):
+    """The foreign file with step 2's second frame (frame 9) at a 41 mm gap beside its first's 40
+    (0.05 m x (1 - 0.2)), and at ``ratio`` if given."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path)
+    with h5py.File(path, "a") as h5:
+        comp = h5["entry/sample/compression"]
+        gap = comp["gap"][()]
+        gap[9] = 0.041
+        comp["gap"][...] = gap
+        if ratio is not None:
+            comp["ratio"][9] = ratio
+    return path
+
+
+def test_a_step_whose_frames_record_two_gaps_is_said_as_two_ratios_are(tmp_path):
+    """The gap feeds the bound (the main pair's gap change) and the steps' order where no ratio is
+    recorded: a step's frames at 40 and 41 mm were averaged to 40.5 mm without a word, where two
+    ratios were warned of."""
+    path = _regapped(tmp_path)
+    with pytest.warns(
+        UserWarning, match=r"step 2's frames record plate gaps from 40 mm \(frame 8\) to 41 mm \(frame 9\).* 40\.5 mm;"
+    ):
+        load_steps(path)
+
+
+def test_a_step_of_two_ratios_and_two_gaps_is_one_warning(tmp_path):
+    """A resumed step at a manual frame records another gap and so another ratio (1 - gap/h0): one
+    warning for the step, naming both, not one per record (nor per frame)."""
+    path = _regapped(tmp_path, ratio=0.18)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        steps = load_steps(path)
+    about = [str(w.message) for w in said if "step 2's frames" in str(w.message)]
+    assert len(about) == 1, about
+    assert "compression ratios from 0.18 (frame 9) to 0.2 (frame 8)" in about[0], about[0]
+    assert "plate gaps from 40 mm (frame 8) to 41 mm (frame 9)" in about[0], about[0]
+    assert steps.ratios[1] == pytest.approx(0.19, abs=1e-12)  # their mean, as before
 
 
 def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys):
