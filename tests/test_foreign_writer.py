@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from radiokit.cli import main
-from radiokit.io import ExperimentWriter, ImageKey
+from radiokit.io import ExperimentWriter, HalfFloatWarning, ImageKey
 from radiokit.pipeline import load_steps
 
 N = 40
@@ -207,6 +207,34 @@ def test_a_step_of_two_ratios_and_two_gaps_is_one_warning(tmp_path):
     assert "compression ratios from 0.18 (frame 9) to 0.2 (frame 8)" in about[0], about[0]
     assert "plate gaps from 40 mm (frame 8) to 41 mm (frame 9)" in about[0], about[0]
     assert steps.ratios[1] == pytest.approx(0.19, abs=1e-12)  # their mean, as before
+
+
+def test_float16_frames_are_said_to_have_lost_counts_above_2048(tmp_path):
+    """float16 holds whole numbers exactly only to 2^11 = 2048 (an 11-bit significand): this
+    phantom's flats, ~3100 counts, were stored rounded to even counts, and a 16-bit panel's
+    counts above 65504 as inf, and read without a word. Said once, in one line naming the file."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path, dtype=np.float16)
+    with h5py.File(path) as h5:  # the premise: counts above 2048 were rounded when written
+        stored = h5["entry/instrument/detector/data"][()].astype(np.float64)
+    lost = np.asarray(FLAT, np.float64) - stored[3:6]
+    assert np.any(lost != 0) and np.all(np.abs(lost) <= 2 ** (np.floor(np.log2(stored[3:6])) - 10) / 2)
+    with pytest.warns(HalfFloatWarning) as said:  # (the command line shows one a file: its .path)
+        assert main(["info", str(path)]) == 0
+    text = str(said[0].message)
+    assert "\n" not in text and text.startswith(f"{path}: ") and "float16" in text and "2048" in text, text
+    assert said[0].message.path == str(path)
+    with pytest.warns(HalfFloatWarning):
+        load_steps(path)
+
+
+def test_uint16_and_float32_frames_are_not_said_to_have_lost_counts(tmp_path):
+    for dtype in (np.uint16, np.float32):
+        path = tmp_path / f"{np.dtype(dtype).name}.h5"
+        write_foreign(path, dtype=dtype)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", HalfFloatWarning)
+            assert main(["info", str(path)]) == 0
 
 
 def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys):
