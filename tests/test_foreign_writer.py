@@ -248,11 +248,11 @@ def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys
     _refused(path, capsys, "3 values for 12", "one per frame")
 
 
-@pytest.mark.parametrize("command", ["process", "calibrate", "correct"])
+@pytest.mark.parametrize("command", ["process", "calibrate", "correct", "register", "info"])
 def test_an_experiment_file_of_0_frames_is_named_as_such(command, tmp_path, capsys):
     """A stack of 0 frames is ``FILE: no frames`` (README, as `radiokit info` says it); an experiment
-    file of none was "holds no darks (image_key 2)" to process and calibrate, and "not an experiment
-    file" to correct."""
+    file of none was "holds no darks (image_key 2)" to process and calibrate, "not an experiment
+    file" to correct, and "frame 0 requested, the file holds 0" to register."""
     path = tmp_path / "foreign.h5"
     write_foreign(path, storage=dict(maxshape=(None, N, N), chunks=CHUNK))
     with h5py.File(path, "a") as h5:
@@ -264,8 +264,13 @@ def test_an_experiment_file_of_0_frames_is_named_as_such(command, tmp_path, caps
         del h5["entry/sample/compression/gap"]
     before = path.read_bytes()
     out = tmp_path / ("out" if command == "process" else "out.h5")
-    args = {"process": [str(path), "-o", str(out)], "calibrate": ["--experiment", str(path), "-o", str(out)]}
-    assert main([command, *args.get(command, [str(path), "-o", str(out)]), "-q"]) == 2
+    args = {
+        "process": [str(path), "-o", str(out), "-q"],
+        "calibrate": ["--experiment", str(path), "-o", str(out), "-q"],
+        "register": [str(path), str(path), "-o", str(out), "-q"],  # was "frame 0 requested, the file holds 0"
+        "info": [str(path)],
+    }
+    assert main([command, *args.get(command, [str(path), "-o", str(out), "-q"])]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"radiokit {command}: {path}: no frames"
     assert not out.exists() and path.read_bytes() == before
