@@ -470,6 +470,14 @@ def _load_steps(path, progress: bool) -> Steps:
         steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
         ratios_all = np.asarray(meta.get("ratio", np.full(len(keys), np.nan)), float)
         numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
+        n_projections = int(np.sum(keys == ImageKey.PROJECTION))
+        if "step" not in meta and n_projections:  # "a negative step" named one the file never wrote
+            raise FormatError(
+                path,
+                f"needs projections of at least two compression steps; its {n_projections} projection(s) have none "
+                "recorded (no /entry/sample/compression/step, which NXtomo and Data Exchange files lack): write "
+                "each frame's step there, one per frame (-1 for darks and flats)",
+            )
         if len(numbers) < 2:
             raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)

@@ -237,6 +237,16 @@ def test_uint16_and_float32_frames_are_not_said_to_have_lost_counts(tmp_path):
             assert main(["info", str(path)]) == 0
 
 
+def test_an_nxtomo_file_without_steps_is_told_where_they_go(tmp_path, capsys):
+    """NXtomo records no compression step: such a file was told its projections "carry no step
+    number (a negative step: not written)", of a step it never wrote."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path)
+    with h5py.File(path, "a") as h5:
+        del h5["entry/sample"]
+    _refused(path, capsys, "6 projection(s) have none", "no /entry/sample/compression/step", "one per frame")
+
+
 def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys):
     """DESIGN.md lists ``ratio`` with ``step (n,)``; one written per step ((3,) for 3 steps) is
     refused saying a ratio is recorded per frame."""
