@@ -404,6 +404,26 @@ def _too_few_steps(numbers: list, unnumbered: int) -> str:
     return f"needs projections of at least two compression steps; {found}"
 
 
+def _numbered_steps(path, meta, keys) -> tuple[np.ndarray, list[int]]:
+    """The file's step of each frame (-1 where none is recorded) and its projections' step
+    numbers, refusing a file of fewer than two numbered steps in words saying what it holds."""
+    from radiokit.io import ImageKey
+
+    steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
+    projection = keys == ImageKey.PROJECTION
+    numbers = sorted(int(s) for s in np.unique(steps[projection & (steps >= 0)]))
+    if "step" not in meta and projection.any():  # "a negative step" named one the file never wrote
+        raise FormatError(
+            path,
+            f"needs projections of at least two compression steps; its {int(projection.sum())} projection(s) have "
+            "none recorded (no /entry/sample/compression/step, which NXtomo and Data Exchange files lack): write "
+            "each frame's step there, one per frame (-1 for darks and flats)",
+        )
+    if len(numbers) < 2:
+        raise FormatError(path, _too_few_steps(numbers, int(np.sum(projection & (steps < 0)))))
+    return steps, numbers
+
+
 def _check_step_records(path, keys, steps, ratios, gaps, numbers) -> None:
     """Refuse, naming the first frame, what DESIGN.md's layout lets another program write but no
     series means, a projection with a negative step (-1 is the darks' and flats'), which was left
@@ -467,19 +487,8 @@ def _load_steps(path, progress: bool) -> Steps:
         meta = src.meta
         _check_square_pixels(path, meta)  # Steps records one pitch (process checked before any work)
         keys = np.asarray(meta["image_key"])
-        steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
+        steps, numbers = _numbered_steps(path, meta, keys)
         ratios_all = np.asarray(meta.get("ratio", np.full(len(keys), np.nan)), float)
-        numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
-        n_projections = int(np.sum(keys == ImageKey.PROJECTION))
-        if "step" not in meta and n_projections:  # "a negative step" named one the file never wrote
-            raise FormatError(
-                path,
-                f"needs projections of at least two compression steps; its {n_projections} projection(s) have none "
-                "recorded (no /entry/sample/compression/step, which NXtomo and Data Exchange files lack): write "
-                "each frame's step there, one per frame (-1 for darks and flats)",
-            )
-        if len(numbers) < 2:
-            raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
         _check_step_records(path, keys, steps, ratios_all, gaps, numbers)
         numbers = _compression_order(numbers, keys, steps, ratios_all, gaps, path)
