@@ -900,11 +900,13 @@ def _one_image(path, index, hints, allow_external=False, option="--fixed-frame",
     """Frame ``index`` of ``path`` (read with the reader's ``hints``: its dataset's) as float32, the
     index counted from the start (-1 is the last frame: the same-image check compares frames, not
     how they were written), and the file's metadata."""
-    from radiokit.io import open_frames
+    from radiokit.io import FormatError, open_frames
 
     hints = dict(hints) | ({"allow_external": True} if allow_external else {})
     hints |= {"narrow_frames": True} if narrow_frames else {}
     with open_frames(path, **hints) as src:  # one frame read, not the whole file
+        if not len(src):  # as info, calibrate, correct and process say it (not "frame 0 requested")
+            raise FormatError(path, "no frames")
         if not -len(src) <= index < len(src):
             raise ValueError(f"{shown(path)}: frame {index} requested, the file holds {len(src)}")
         _a_projection(path, src.meta.get("image_key"), index, option)

@@ -404,14 +404,35 @@ def _too_few_steps(numbers: list, unnumbered: int) -> str:
     return f"needs projections of at least two compression steps; {found}"
 
 
-def _check_step_records(path, keys, steps, ratios, numbers) -> None:
+def _numbered_steps(path, meta, keys) -> tuple[np.ndarray, list[int]]:
+    """The file's step of each frame (-1 where none is recorded) and its projections' step
+    numbers, refusing a file of fewer than two numbered steps in words saying what it holds."""
+    from radiokit.io import ImageKey
+
+    steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
+    projection = keys == ImageKey.PROJECTION
+    numbers = sorted(int(s) for s in np.unique(steps[projection & (steps >= 0)]))
+    if "step" not in meta and projection.any():  # "a negative step" named one the file never wrote
+        raise FormatError(
+            path,
+            f"needs projections of at least two compression steps; its {int(projection.sum())} projection(s) have "
+            "none recorded (no /entry/sample/compression/step, which NXtomo and Data Exchange files lack): write "
+            "each frame's step there, one per frame (-1 for darks and flats)",
+        )
+    if len(numbers) < 2:
+        raise FormatError(path, _too_few_steps(numbers, int(np.sum(projection & (steps < 0)))))
+    return steps, numbers
+
+
+def _check_step_records(path, keys, steps, ratios, gaps, numbers) -> None:
     """Refuse, naming the first frame, what DESIGN.md's layout lets another program write but no
     series means, a projection with a negative step (-1 is the darks' and flats'), which was left
     out without a word (a whole step of a foreign file dropped, the run measured on the other two
-    with exit code 0); and warn of a step whose frames record different ratios (0.2 and 0.22 were
-    averaged into one image at 0.21 without a word): not refused, since radiokit's own series can
-    write one (a step resumed on a manual frame records the gap the operator measured again).
-    Frames with no ratio (NaN) are not compared."""
+    with exit code 0); and warn of a step whose frames record different ratios or gaps (0.2 and
+    0.22 were averaged into one image at 0.21 without a word; 40 and 41 mm into the bound's 40.5),
+    once a step, naming both where both differ: not refused, since radiokit's own series can write
+    one (a step resumed on a manual frame records the gap the operator measured again, and its
+    ratio, 1 - gap/h0). Frames with no record (NaN) are not compared."""
     from radiokit.io import ImageKey
 
     projection = keys == ImageKey.PROJECTION
@@ -425,16 +446,26 @@ def _check_step_records(path, keys, steps, ratios, numbers) -> None:
             f"beside steps {', '.join(map(str, numbers))} (a negative step is a dark's or a flat's): give it its "
             "step, or mark it invalid (image_key 3)",
         )
+    # (values, what, shown as, tolerance): float32 storage of one value differs by < 1e-7 of it;
+    # gaps are in m, said in mm
+    records = (
+        (ratios, "compression ratios", lambda v: f"{v:.6g}", lambda v: 1e-6),
+        (gaps, "plate gaps", lambda v: f"{v * 1e3:.6g} mm", lambda v: 1e-6 * float(np.max(np.abs(v)))),
+    )
     for s in numbers:
-        idx = np.flatnonzero(projection & (steps == s) & np.isfinite(ratios))
-        if idx.size and np.ptp(ratios[idx]) > 1e-6:  # float32 storage of one value differs by < 1e-7
+        spreads, means = [], []
+        for values, what, say, tolerance in records:
+            idx = np.flatnonzero(projection & (steps == s) & np.isfinite(values))
+            if idx.size and np.ptp(values[idx]) > tolerance(values[idx]):
+                lo, hi = int(idx[np.argmin(values[idx])]), int(idx[np.argmax(values[idx])])
+                spreads.append(f"{what} from {say(values[lo])} (frame {lo}) to {say(values[hi])} (frame {hi})")
+                means.append(say(float(np.mean(values[idx]))))
+        if spreads:
             import warnings
 
-            lo, hi = int(idx[np.argmin(ratios[idx])]), int(idx[np.argmax(ratios[idx])])
             warnings.warn(
-                f"{shown(path)}: step {s}'s frames record compression ratios from {ratios[lo]:.6g} (frame {lo}) "
-                f"to {ratios[hi]:.6g} (frame {hi}): averaged as one image at their mean, "
-                f"{float(np.mean(ratios[idx])):.6g}; frames of another compression (a mislabelled step) should "
+                f"{shown(path)}: step {s}'s frames record {' and '.join(spreads)}: averaged as one image at their "
+                f"mean, {' and '.join(means)}; frames of another compression (a mislabelled step) should "
                 "carry their own step, or image_key 3 (invalid)",
                 UserWarning,
                 stacklevel=4,
@@ -456,13 +487,10 @@ def _load_steps(path, progress: bool) -> Steps:
         meta = src.meta
         _check_square_pixels(path, meta)  # Steps records one pitch (process checked before any work)
         keys = np.asarray(meta["image_key"])
-        steps = np.asarray(meta.get("step", np.full(len(keys), -1)))
+        steps, numbers = _numbered_steps(path, meta, keys)
         ratios_all = np.asarray(meta.get("ratio", np.full(len(keys), np.nan)), float)
-        numbers = sorted(int(s) for s in np.unique(steps[(keys == ImageKey.PROJECTION) & (steps >= 0)]))
-        if len(numbers) < 2:
-            raise FormatError(path, _too_few_steps(numbers, int(np.sum((keys == ImageKey.PROJECTION) & (steps < 0)))))
-        _check_step_records(path, keys, steps, ratios_all, numbers)
         gaps = np.asarray(meta.get("gap", np.full(len(keys), np.nan)), float)
+        _check_step_records(path, keys, steps, ratios_all, gaps, numbers)
         numbers = _compression_order(numbers, keys, steps, ratios_all, gaps, path)
         images, ratios = [], []
         projections = np.flatnonzero((keys == ImageKey.PROJECTION) & (steps >= 0))

@@ -6,12 +6,14 @@ The frames are a small disc-in-body phantom drawn here; each variant holds the v
 so the corrected steps must agree to float rounding (float32 storage of integer counts below 2^24
 is exact; the calibration's arithmetic is the same float64 either way)."""
 
+import warnings
+
 import h5py
 import numpy as np
 import pytest
 
 from radiokit.cli import main
-from radiokit.io import ExperimentWriter, ImageKey
+from radiokit.io import ExperimentWriter, HalfFloatWarning, ImageKey
 from radiokit.pipeline import load_steps
 
 N = 40
@@ -167,6 +169,84 @@ def test_a_step_whose_frames_record_two_ratios_is_said_and_averaged(tmp_path):
     assert steps.ratios[1] == pytest.approx(0.21, abs=1e-12)
 
 
+def _regapped(tmp_path, ratio=None):
+    """The foreign file with step 2's second frame (frame 9) at a 41 mm gap beside its first's 40
+    (0.05 m x (1 - 0.2)), and at ``ratio`` if given."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path)
+    with h5py.File(path, "a") as h5:
+        comp = h5["entry/sample/compression"]
+        gap = comp["gap"][()]
+        gap[9] = 0.041
+        comp["gap"][...] = gap
+        if ratio is not None:
+            comp["ratio"][9] = ratio
+    return path
+
+
+def test_a_step_whose_frames_record_two_gaps_is_said_as_two_ratios_are(tmp_path):
+    """The gap feeds the bound (the main pair's gap change) and the steps' order where no ratio is
+    recorded: a step's frames at 40 and 41 mm were averaged to 40.5 mm without a word, where two
+    ratios were warned of."""
+    path = _regapped(tmp_path)
+    with pytest.warns(
+        UserWarning, match=r"step 2's frames record plate gaps from 40 mm \(frame 8\) to 41 mm \(frame 9\).* 40\.5 mm;"
+    ):
+        load_steps(path)
+
+
+def test_a_step_of_two_ratios_and_two_gaps_is_one_warning(tmp_path):
+    """A resumed step at a manual frame records another gap and so another ratio (1 - gap/h0): one
+    warning for the step, naming both, not one per record (nor per frame)."""
+    path = _regapped(tmp_path, ratio=0.18)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        steps = load_steps(path)
+    about = [str(w.message) for w in said if "step 2's frames" in str(w.message)]
+    assert len(about) == 1, about
+    assert "compression ratios from 0.18 (frame 9) to 0.2 (frame 8)" in about[0], about[0]
+    assert "plate gaps from 40 mm (frame 8) to 41 mm (frame 9)" in about[0], about[0]
+    assert steps.ratios[1] == pytest.approx(0.19, abs=1e-12)  # their mean, as before
+
+
+def test_float16_frames_are_said_to_have_lost_counts_above_2048(tmp_path):
+    """float16 holds whole numbers exactly only to 2^11 = 2048 (an 11-bit significand): this
+    phantom's flats, ~3100 counts, were stored rounded to even counts, and a 16-bit panel's
+    counts above 65504 as inf, and read without a word. Said once, in one line naming the file."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path, dtype=np.float16)
+    with h5py.File(path) as h5:  # the premise: counts above 2048 were rounded when written
+        stored = h5["entry/instrument/detector/data"][()].astype(np.float64)
+    lost = np.asarray(FLAT, np.float64) - stored[3:6]
+    assert np.any(lost != 0) and np.all(np.abs(lost) <= 2 ** (np.floor(np.log2(stored[3:6])) - 10) / 2)
+    with pytest.warns(HalfFloatWarning) as said:  # (the command line shows one a file: its .path)
+        assert main(["info", str(path)]) == 0
+    text = str(said[0].message)
+    assert "\n" not in text and text.startswith(f"{path}: ") and "float16" in text and "2048" in text, text
+    assert said[0].message.path == str(path)
+    with pytest.warns(HalfFloatWarning):
+        load_steps(path)
+
+
+def test_uint16_and_float32_frames_are_not_said_to_have_lost_counts(tmp_path):
+    for dtype in (np.uint16, np.float32):
+        path = tmp_path / f"{np.dtype(dtype).name}.h5"
+        write_foreign(path, dtype=dtype)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", HalfFloatWarning)
+            assert main(["info", str(path)]) == 0
+
+
+def test_an_nxtomo_file_without_steps_is_told_where_they_go(tmp_path, capsys):
+    """NXtomo records no compression step: such a file was told its projections "carry no step
+    number (a negative step: not written)", of a step it never wrote."""
+    path = tmp_path / "foreign.h5"
+    write_foreign(path)
+    with h5py.File(path, "a") as h5:
+        del h5["entry/sample"]
+    _refused(path, capsys, "6 projection(s) have none", "no /entry/sample/compression/step", "one per frame")
+
+
 def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys):
     """DESIGN.md lists ``ratio`` with ``step (n,)``; one written per step ((3,) for 3 steps) is
     refused saying a ratio is recorded per frame."""
@@ -178,11 +258,11 @@ def test_a_ratio_per_step_instead_of_per_frame_is_named_as_such(tmp_path, capsys
     _refused(path, capsys, "3 values for 12", "one per frame")
 
 
-@pytest.mark.parametrize("command", ["process", "calibrate", "correct"])
+@pytest.mark.parametrize("command", ["process", "calibrate", "correct", "register", "info"])
 def test_an_experiment_file_of_0_frames_is_named_as_such(command, tmp_path, capsys):
     """A stack of 0 frames is ``FILE: no frames`` (README, as `radiokit info` says it); an experiment
-    file of none was "holds no darks (image_key 2)" to process and calibrate, and "not an experiment
-    file" to correct."""
+    file of none was "holds no darks (image_key 2)" to process and calibrate, "not an experiment
+    file" to correct, and "frame 0 requested, the file holds 0" to register."""
     path = tmp_path / "foreign.h5"
     write_foreign(path, storage=dict(maxshape=(None, N, N), chunks=CHUNK))
     with h5py.File(path, "a") as h5:
@@ -194,8 +274,13 @@ def test_an_experiment_file_of_0_frames_is_named_as_such(command, tmp_path, caps
         del h5["entry/sample/compression/gap"]
     before = path.read_bytes()
     out = tmp_path / ("out" if command == "process" else "out.h5")
-    args = {"process": [str(path), "-o", str(out)], "calibrate": ["--experiment", str(path), "-o", str(out)]}
-    assert main([command, *args.get(command, [str(path), "-o", str(out)]), "-q"]) == 2
+    args = {
+        "process": [str(path), "-o", str(out), "-q"],
+        "calibrate": ["--experiment", str(path), "-o", str(out), "-q"],
+        "register": [str(path), str(path), "-o", str(out), "-q"],  # was "frame 0 requested, the file holds 0"
+        "info": [str(path)],
+    }
+    assert main([command, *args.get(command, [str(path), "-o", str(out), "-q"])]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"radiokit {command}: {path}: no frames"
     assert not out.exists() and path.read_bytes() == before

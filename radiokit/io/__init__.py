@@ -43,7 +43,7 @@ from radiokit.io._experiment import (
     read_progress,
     restore_previous,
 )
-from radiokit.io._frames import BitDepthWarning, Frames, bit_depth_cause
+from radiokit.io._frames import BitDepthWarning, Frames, HalfFloatWarning, bit_depth_cause
 from radiokit.io._raw import DEFAULT_PRESET, PRESETS, RawPreset
 from radiokit.io._registration import RegistrationRecord, read_registration, write_registration
 from radiokit.io._results import EnhancedImages, ResultsRecord, read_results, write_results
@@ -76,6 +76,7 @@ __all__ = [
     "FormatError",
     "InputErrors",
     "BitDepthWarning",
+    "HalfFloatWarning",
     "bit_depth_cause",
     "atomic_path",
     "atomic_dir",

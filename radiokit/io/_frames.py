@@ -10,11 +10,29 @@ import numpy as np
 
 from radiokit._names import shown
 
-__all__ = ["Frames", "BitDepthWarning"]
+__all__ = ["Frames", "BitDepthWarning", "HalfFloatWarning"]
 
 
 class BitDepthWarning(UserWarning):
     """Pixel values exceed the detector's ADC range: wrong bit order, byte order or model."""
+
+
+class HalfFloatWarning(UserWarning):
+    """Raw frames stored as float16: counts above 2048 were rounded when written."""
+
+
+def warn_half_float(path) -> None:
+    """Warn that raw frames stored as float16 lost counts when written. Why: float16 holds whole
+    numbers exactly only to 2048 (its significand's 11 bits); a C7942's flats at 3000 counts were
+    stored rounded to even counts, a 16-bit panel's counts above 65504 as inf, and read without a
+    word. Said once a file on the command line (``path``), not at each of its opens."""
+    message = HalfFloatWarning(
+        f"{shown(path)}: frames stored as float16, which holds whole counts exactly only up to 2048: counts above it "
+        "were rounded when written (to even counts up to 4096, to 4 up to 8192 ... to 32 up to 65504; above that "
+        "inf); read as stored: store raw counts as uint16 or float32"
+    )
+    message.path = str(path)
+    warnings.warn(message, stacklevel=4)
 
 
 @dataclass

@@ -48,7 +48,7 @@ from radiokit.io._experiment import (
     read_pixel_sizes,
     usable_pixel_sizes,
 )
-from radiokit.io._frames import RAW_SWAP_ADVICE, Frames, check_bit_depth
+from radiokit.io._frames import RAW_SWAP_ADVICE, Frames, check_bit_depth, warn_half_float
 from radiokit.io._itex import (
     HEADER_BYTES,
     adc_bits,
@@ -295,6 +295,10 @@ class FrameSource:
                 raise FormatError(
                     self.path, f"pixels of type {np.dtype(self.dtype)}: expected integers or real numbers"
                 )
+            if np.dtype(self.dtype) == np.float16 and self.meta.get("format") in ("experiment", "dxchange") and self.n:
+                # raw counts by their layout (darks, flats, projections); another float16 stack may
+                # hold transmissions, which no count limit concerns
+                warn_half_float(self.path)
             # MATLAB's order is read as MATLAB shows it; frames of the axes a tifffile writer gave, as given
             if (
                 self.format in ("tiff", "hdf5")
