@@ -1785,13 +1785,13 @@ def process_many(
             Path(out_root).mkdir(parents=True)
         client.run(_limit_worker, shares)
         futures = {
-            client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, pure=False): i
+            client.submit(_process_one, str(p), cfg, str(o), overwrite, shares, os.getpid(), pure=False): i
             for i, (p, o) in enumerate(zip(paths, outs))
         }
         results = [None] * len(paths)
         with tqdm(total=len(paths), desc="process", unit="file", disable=not (config or Config()).progress) as bar:
             for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
+                results[futures[fut]] = _warn_again(*fut.result())
                 bar.update()
         return results
     except BaseException:  # Ctrl-C, SIGTERM: the workers are stopped, not left running
@@ -2032,16 +2032,50 @@ def _limit_worker(shares, dask_worker=None):
     return share.threads if share else 1
 
 
-def _process_one(path, cfg, out_dir, overwrite=False, shares=None):
+def _process_one(path, cfg, out_dir, overwrite=False, shares=None, caller=None):
+    """One file's result slot (:func:`process_many`), and the warnings it raised: ``(category,
+    text, path)`` each, to be issued again in the caller (:func:`_warn_again`). Why: a local
+    cluster's workers are processes, whose warnings went to the terminal in Python's two-line form
+    (the worker's source file and line), not the command's one line, and once for each of the
+    file's opens. A worker in the caller's own process (``caller``, its pid: a thread of an
+    in-process cluster) leaves them as they are: they are the caller's already, and
+    ``catch_warnings`` is not safe across threads."""
     if shares is not None:  # a worker that joined after client.run, or whose limits were reset
         from distributed import get_worker
 
         _limit_worker(shares, get_worker())
+    if caller is None or caller == os.getpid():
+        return _process_slot(path, cfg, out_dir, overwrite), []
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")  # once per place and text, as the caller's filter shows them
+        slot = _process_slot(path, cfg, out_dir, overwrite)
+    return slot, [(w.category, str(w.message), getattr(w.message, "path", None)) for w in caught]
+
+
+def _process_slot(path, cfg, out_dir, overwrite) -> dict:
     try:
         res = process(path, cfg, out_dir=out_dir, overwrite=overwrite)
         return dict(res.results, output=str(out_dir))
     except Exception as exc:  # one bad file must not stop the others: reported in its slot
         return _error_result(path, exc)
+
+
+def _warn_again(slot: dict, said) -> dict:
+    """``slot``, once a worker's warnings (:func:`_process_one`) are issued here, each of its own
+    category and carrying its file (``path``: the command line shows a file's warning once)."""
+    import warnings
+
+    for category, text, path in said:
+        try:
+            message = category(text)
+        except Exception:  # a category built otherwise: its words still reach the user
+            message = UserWarning(text)
+        if path is not None:
+            message.path = path
+        warnings.warn(message, stacklevel=2)
+    return slot
 
 
 def _error_result(path, exc) -> dict:

@@ -28,6 +28,7 @@ import dataclasses
 import json
 import math
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -878,3 +879,39 @@ def test_config_refuses_a_flag_that_is_no_bool_and_a_control_that_is_no_path(giv
     for word in words:
         assert word in str(info.value), (word, str(info.value))
     assert Config(report=np.bool_(False), control=Path("c.h5")).report is False
+
+
+def _as_float16(path) -> None:
+    """The frames of ``path`` stored again as float16 (radiokit warns: HalfFloatWarning)."""
+    import h5py
+
+    with h5py.File(path, "a") as h5:
+        name = "entry/instrument/detector/data"
+        data, attrs = h5[name][()], dict(h5[name].attrs)
+        del h5[name]
+        h5.create_dataset(name, data=data.astype(np.float16)).attrs.update(attrs)
+
+
+def test_a_workers_warnings_reach_the_caller_as_its_own_not_the_workers_stderr(tmp_path, capfd):
+    """A local cluster's workers are processes: a warning there (a file's float16 frames, its
+    ratios within a step) went to the terminal in Python's two-line form -- the worker's source
+    path and code line -- not the command's one line, and once for each of the file's opens. Each
+    file's warnings now come back with its result and are issued in the caller, once a file."""
+    from radiokit.io import HalfFloatWarning
+    from radiokit.pipeline import Config, process_many
+
+    paths = [tmp_path / "a.h5", tmp_path / "b.h5"]
+    for p, scale in zip(paths, (1.0, 1.2)):
+        _synthetic(p, scale=scale)
+        _as_float16(p)
+    cfg = Config(crop_mm=None, report=False, progress=False, inclusion=(75, 86, 75, 86), background=(75, 86, 40, 51))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = process_many(paths, cfg, out_root=tmp_path / "out", workers=2)
+    assert all("error" not in r for r in res), res
+    err = capfd.readouterr().err
+    assert "HalfFloatWarning" not in err and "Warning:" not in err, err  # nothing from the workers
+    said = [w for w in caught if issubclass(w.category, HalfFloatWarning)]
+    for p in paths:  # each file's, in the caller, carrying the file for the command line's once-a-file
+        mine = [w for w in said if getattr(w.message, "path", None) == str(p)]
+        assert mine and all(str(w.message).startswith(f"{p}: frames stored as float16") for w in mine), said
