@@ -10,6 +10,8 @@ import os
 import signal
 import time
 
+import pytest
+
 from acquisition.transport import SerialTransport, close_wait_s
 
 
@@ -61,3 +63,32 @@ def test_a_close_from_a_signal_handler_inside_a_close_neither_waits_for_itself_n
     assert seen["inner_s"] < bound / 4, (seen["inner_s"], bound)
     assert seen["held_after_inner"], "the inner close let go of the outer close's lock"
     assert not link._lock.locked() and not link.is_open
+
+
+def test_a_stop_raised_inside_a_close_still_lets_go_of_the_ports_lock():
+    """A stop's handler that raises (Ctrl-C) as the close logs its port closed: the port is closed,
+    and this link's share of the port's lock goes all the same -- kept, another program found the
+    port held by a link that was closed."""
+    master, slave = os.openpty()
+    log = logging.getLogger("test.transport.close_review.raise")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    kick = _SignalOnClose()
+    log.addHandler(kick)
+    link = SerialTransport(os.ttyname(slave), timeout_s=0.5, write_timeout_s=0.5, min_interval_s=0.0, log=log)
+    assert link._hold is not None, "a local port's lock is taken on opening"
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGUSR1, handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            link.close()
+    finally:
+        signal.signal(signal.SIGUSR1, old)
+        log.removeHandler(kick)
+        os.close(master)
+        os.close(slave)
+    assert kick.sent
+    assert link._hold is None and not link.is_open and not link._lock.locked()
