@@ -165,6 +165,40 @@ def test_a_write_stalled_past_the_close_s_wait_never_writes_into_a_file_that_too
         link.close()
 
 
+def test_a_close_past_its_wait_during_a_reopen_leaves_the_link_closed_and_its_lock_let_go(tmp_path):
+    """A query on a link lost before reopens the port. Stalled in that open past the close's wait
+    (a loaded machine; a spy holds it once the port is opened, before its lock is checked), the close
+    closes the link under it: the port just opened must not become the link's, nor its lock's share
+    stay held after the close returned. Review s53rvclose: with the check removed, no test failed."""
+    master, slave = os.openpty()
+    link = SerialTransport(os.ttyname(slave), timeout_s=0.05, write_timeout_s=0.05, min_interval_s=0.0, retries=0)
+    bound = close_wait_s(link.timeout_s, link.write_timeout_s, link.min_interval_s)
+    real, stalled, closed = link._hold_opened, threading.Event(), threading.Event()
+
+    def spy(ser):  # the port opened, its lock not yet checked (and taken again) on it
+        stalled.set()
+        assert closed.wait(bound + 5.0)
+        real(ser)
+
+    try:
+        link._close_port()  # as a lost link leaves it: the next query reopens it
+        link._hold_opened = spy
+        thread, out = _run(lambda: link.query("STS"))
+        assert stalled.wait(2.0), "the query never reopened the port"
+        link.close()
+        closed.set()
+        thread.join(3.0)
+        assert not thread.is_alive()
+        raised = out.get("raised")
+        assert isinstance(raised, DeviceError) and "link was closed" in str(raised), out
+        assert not link.is_open and link._hold is None
+    finally:
+        closed.set()
+        link.close()
+        os.close(master)
+        os.close(slave)
+
+
 @pytest.fixture
 def served():
     from acquisition.emulators.l8121 import L8121Model, PtyServer
