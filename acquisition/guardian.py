@@ -589,7 +589,19 @@ def _end_start_bound_s(config, startup_timeout_s: float) -> float:
     the exchange again) is not counted, and may get a guardian killed that was still working; the
     port is then free and the caller switches off through it itself (``guardian_gone``), confirmed
     by STS or the warning. (Each exchange counted as the pipe's wait -- two time-outs, a reconnect,
-    slack: 8 s at 2 s -- a hung guardian was killed only after 52 s for a 1 s start.)"""
+    slack: 8 s at 2 s -- a hung guardian was killed only after 52 s for a 1 s start.)
+
+    Why not each exchange's worst by all its time-outs (:func:`~acquisition.transport.close_wait_s`,
+    review s53rvclose): the reply wait of an exchange a signal cut short never comes here (the
+    guardian's stop handlers, :func:`main`, never raise: no exchange of its is interrupted); and
+    its write waits (an earlier command's unsent bytes, the write, the drain: three write
+    time-outs, 3 s by default) come only on a port whose output does not drain, through which the
+    guardian's XOF cannot reach the controller either: killed, it frees the port for the caller's
+    own switch-off, which meets the same port and ends on the warning. Counted, they added 7 s at
+    the dialects' 2 s reply time-out (17.5 s at 0.5 s: the write waits, not the reply, dominate)
+    to the wait before a HUNG guardian is killed and the caller switches off itself -- the case
+    this bound is for, the tube perhaps on all the while. One exchange that stalls for a moment
+    fits in the exchanges a confirmed switch-off does not use."""
     from acquisition.transport import exchange_longest_s
 
     exchanges = 2 * config.off_attempts + 1

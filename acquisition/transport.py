@@ -799,6 +799,12 @@ class SerialTransport:
         the thread whose exchange holds the link, it cannot wait: the exchange stops likewise --
         unless it is a switch-off, which goes on; the port is closed at its end."""
         me = threading.get_ident()
+        if self._closer == me:
+            # a signal handler's close inside this thread's own close, which holds the exchange's
+            # lock and closes all as the handler returns (or, should the handler raise, in its
+            # finally blocks): waiting for that lock waited close_wait_s for itself, then released
+            # it under the outer close: another thread's exchange could take it and reopen the port meanwhile
+            return
         if self._owner == me:
             if self._running is not None and self._is_switch_off(self._running[0]):
                 self._close_after_query = True
@@ -817,10 +823,12 @@ class SerialTransport:
 
     def _close_all(self) -> None:
         """Close the port and let go of the lock's share (the exchange's lock held, or its end)."""
-        self._close_port()
-        hold, self._hold = self._hold, None
-        if hold is not None:
-            hold.release()
+        try:
+            self._close_port()
+        finally:  # a signal's handler raising in the port's close: the share goes all the same
+            hold, self._hold = self._hold, None
+            if hold is not None:
+                hold.release()
 
     def _is_switch_off(self, command: str | None) -> bool:
         return command is not None and command.split(" ", 1)[0] in getattr(self.on_reconnect, "blind", ())

@@ -8,6 +8,7 @@ closing and the exchange stops at its next step without touching the descriptor.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -111,6 +112,91 @@ def test_a_close_during_a_write_never_lets_the_command_into_a_file_that_took_its
         for fd, _ in opened:
             os.close(fd)
         link.close()
+
+
+def test_a_write_stalled_past_the_close_s_wait_never_writes_into_a_file_that_took_its_descriptor(stuck_pty, tmp_path):
+    """The write loop holds the port's descriptor NUMBER from its start. Stalled between two of its
+    steps past the close's wait (a loaded machine; here a spy holds it after its first wait for the
+    port to take bytes), the close closes the port under it and a file opened right after takes the
+    number: the loop's next ``os.write`` must not go into that file. Review s53rvclose: with the
+    step's check removed, no other test failed (the close above waits the write out, and the
+    reconnect check's exchange picks up the closed port, not the number)."""
+    _, _, path = stuck_pty
+    link = SerialTransport(path, timeout_s=0.05, write_timeout_s=0.1, min_interval_s=0.0, retries=0)
+    bound = close_wait_s(link.timeout_s, link.write_timeout_s, link.min_interval_s)
+    real, steps = link._closed_as_lost, []
+    stalled, closed = threading.Event(), threading.Event()
+
+    @contextlib.contextmanager
+    def spy(ser, doing):
+        with real(ser, doing):
+            yield
+        steps.append(doing)
+        if doing.startswith("it wrote") and steps.count(doing) == 2 and not stalled.is_set():
+            stalled.set()  # its first write and its first wait done: the next step writes again
+            assert closed.wait(bound + 5.0)
+
+    link._closed_as_lost = spy
+    opened = []
+    try:
+        _fill(path)
+        number = link._serial.fd
+        thread, out = _run(lambda: link.query("STS"))
+        assert stalled.wait(2.0), "the write never waited for the port"
+        t0 = time.monotonic()
+        link.close()
+        closed_s = time.monotonic() - t0
+        opened = _files_on(number, tmp_path)
+        assert opened[-1][0] == number
+        closed.set()
+        thread.join(3.0)
+        assert not thread.is_alive()
+        for _, file in opened:
+            with open(file, "rb") as f:
+                assert f.read() == b"", "the command went into a file that took the port's descriptor"
+        raised = out.get("raised")
+        assert isinstance(raised, DeviceError) and "link was closed" in str(raised), out
+        assert bound <= closed_s <= bound + _SLACK_S  # waited its bound, not for the stalled write
+        assert not link.is_open
+    finally:
+        closed.set()
+        for fd, _ in opened:
+            os.close(fd)
+        link.close()
+
+
+def test_a_close_past_its_wait_during_a_reopen_leaves_the_link_closed_and_its_lock_let_go(tmp_path):
+    """A query on a link lost before reopens the port. Stalled in that open past the close's wait
+    (a loaded machine; a spy holds it once the port is opened, before its lock is checked), the close
+    closes the link under it: the port just opened must not become the link's, nor its lock's share
+    stay held after the close returned. Review s53rvclose: with the check removed, no test failed."""
+    master, slave = os.openpty()
+    link = SerialTransport(os.ttyname(slave), timeout_s=0.05, write_timeout_s=0.05, min_interval_s=0.0, retries=0)
+    bound = close_wait_s(link.timeout_s, link.write_timeout_s, link.min_interval_s)
+    real, stalled, closed = link._hold_opened, threading.Event(), threading.Event()
+
+    def spy(ser):  # the port opened, its lock not yet checked (and taken again) on it
+        stalled.set()
+        assert closed.wait(bound + 5.0)
+        real(ser)
+
+    try:
+        link._close_port()  # as a lost link leaves it: the next query reopens it
+        link._hold_opened = spy
+        thread, out = _run(lambda: link.query("STS"))
+        assert stalled.wait(2.0), "the query never reopened the port"
+        link.close()
+        closed.set()
+        thread.join(3.0)
+        assert not thread.is_alive()
+        raised = out.get("raised")
+        assert isinstance(raised, DeviceError) and "link was closed" in str(raised), out
+        assert not link.is_open and link._hold is None
+    finally:
+        closed.set()
+        link.close()
+        os.close(master)
+        os.close(slave)
 
 
 @pytest.fixture
