@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -395,6 +396,22 @@ def mounted_tmpfs(folder, size):
         yield folder
     finally:
         subprocess.run(["umount", str(folder)], check=True)
+
+
+def in_thread(call):
+    """``call()`` run in a daemon thread: (the thread, ``out``), ``out["reply"]`` its return or
+    ``out["raised"]`` what it raised (a BaseException too: the outcome is what the test looks at)."""
+    out: dict = {}
+
+    def run():
+        try:
+            out["reply"] = call()
+        except BaseException as exc:  # the outcome looked at by the test
+            out["raised"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, out
 
 
 def square_pair(n=160):

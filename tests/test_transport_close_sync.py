@@ -14,26 +14,13 @@ import threading
 import time
 
 import pytest
+from conftest import in_thread
 
 from acquisition.errors import DeviceError, NoReply, WriteTimedOut
 from acquisition.transport import SerialTransport, close_wait_s
 
 # a loaded CI machine's scheduling slack on a wait measured from outside
 _SLACK_S = 0.5
-
-
-def _run(call) -> tuple[threading.Thread, dict]:
-    out: dict = {}
-
-    def run():
-        try:
-            out["reply"] = call()
-        except BaseException as exc:  # the outcome looked at by the test
-            out["raised"] = exc
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread, out
 
 
 def _wait_for(predicate, within_s: float = 2.0) -> None:
@@ -91,7 +78,7 @@ def test_a_close_during_a_write_never_lets_the_command_into_a_file_that_took_its
     try:
         _fill(path)  # after the open: pyserial's raw mode set, the output buffer full
         number = link._serial.fd
-        thread, out = _run(lambda: link.query("STS"))
+        thread, out = in_thread(lambda: link.query("STS"))
         _wait_for(lambda: link.commands_written == 1)  # in its write loop, the descriptor in hand
         time.sleep(0.02)
         t0 = time.monotonic()
@@ -141,7 +128,7 @@ def test_a_write_stalled_past_the_close_s_wait_never_writes_into_a_file_that_too
     try:
         _fill(path)
         number = link._serial.fd
-        thread, out = _run(lambda: link.query("STS"))
+        thread, out = in_thread(lambda: link.query("STS"))
         assert stalled.wait(2.0), "the write never waited for the port"
         t0 = time.monotonic()
         link.close()
@@ -183,7 +170,7 @@ def test_a_close_past_its_wait_during_a_reopen_leaves_the_link_closed_and_its_lo
     try:
         link._close_port()  # as a lost link leaves it: the next query reopens it
         link._hold_opened = spy
-        thread, out = _run(lambda: link.query("STS"))
+        thread, out = in_thread(lambda: link.query("STS"))
         assert stalled.wait(2.0), "the query never reopened the port"
         link.close()
         closed.set()
@@ -239,7 +226,7 @@ def test_an_exchange_past_the_close_s_wait_stops_without_touching_the_descriptor
         assert link.query("TYP") == "TYP L8121-01"
         link._close_port()  # as a lost link leaves it: the next query reopens and checks
         link.on_reconnect = check
-        thread, out = _run(lambda: link.query("STS"))
+        thread, out = in_thread(lambda: link.query("STS"))
         assert check.entered.wait(2.0)
         number = link._serial.fd
         before = len(model.commands)
@@ -278,7 +265,7 @@ def test_a_running_switch_off_is_not_cut_short_by_a_close(served):
         assert link.query("TYP") == "TYP L8121-01"
         link._close_port()
         link.on_reconnect = check
-        thread, out = _run(lambda: link.query("XOF"))
+        thread, out = in_thread(lambda: link.query("XOF"))
         assert check.entered.wait(2.0)
         stall_s = close_wait_s(**_SHORT) + 0.2  # past a plain exchange's wait
         threading.Timer(stall_s, check.go.set).start()

@@ -16,25 +16,11 @@ import threading
 import time
 
 import pytest
+from conftest import in_thread
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.errors import DeviceError, NoReply, WriteTimedOut
 from acquisition.transport import SerialTransport, close_wait_s
-
-
-def _run(call) -> tuple[threading.Thread, dict]:
-    out: dict = {}
-
-    def run():
-        try:
-            out["reply"] = call()
-        except BaseException as exc:  # the outcome looked at by the test
-            out["raised"] = exc
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread, out
-
 
 # the longest the close may wait for the exchange on these tests' links, and a loaded machine's slack
 _TIMEOUTS = {"timeout_s": 0.25, "write_timeout_s": 0.05, "min_interval_s": 0.0}
@@ -75,6 +61,17 @@ class _CloseAfterARead:
         assert not link.is_open
 
 
+def _closed_during(link: SerialTransport, command: str, step: str = "_read_some") -> dict:
+    """``link.query(command)`` in a thread, the link closed from this one once the exchange has
+    passed its ``step`` (:class:`_CloseAfterARead`): the query's outcome, the thread ended."""
+    spy = _CloseAfterARead(link, step)
+    thread, out = in_thread(lambda: link.query(command))
+    spy.close_after_it()
+    thread.join(3.0)
+    assert not thread.is_alive()
+    return out
+
+
 def _assert_lost_link(out: dict, command: str) -> None:
     raised = out.get("raised")
     assert isinstance(raised, DeviceError) and not isinstance(raised, (NoReply, WriteTimedOut)), repr(raised)
@@ -94,11 +91,7 @@ def test_a_port_closed_while_the_reply_is_read_is_a_lost_link_and_the_command_ow
     link = SerialTransport(server.url, **_TIMEOUTS, retries=0)
     try:
         model.hold_once()  # no reply comes: the exchange stays in its read
-        spy = _CloseAfterARead(link)
-        thread, out = _run(lambda: link.query("STS"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "STS")
         _assert_lost_link(out, "STS")
         # written whole before the port went: it may have reached the controller, its reply owed
         assert [command for command, _ in link._owed] == ["STS"]
@@ -114,11 +107,7 @@ def test_a_port_closed_while_a_late_reply_is_awaited_is_a_lost_link(served):
         with pytest.raises(NoReply):
             link.query("STS")
         # the next exchange first waits a quarter time-out for the late reply: closed in that read
-        spy = _CloseAfterARead(link)
-        thread, out = _run(lambda: link.query("TYP"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "TYP")
         _assert_lost_link(out, "TYP")
     finally:
         link.close()
@@ -148,11 +137,7 @@ def test_a_port_closed_while_an_interrupted_exchange_is_completed_is_a_lost_link
             sys.setprofile(None)
             signal.signal(signal.SIGINT, previous)
         assert link._pending is not None and link._pending[0] == "STS"
-        spy = _CloseAfterARead(link)
-        thread, out = _run(lambda: link.query("TYP"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "TYP")
         _assert_lost_link(out, "TYP")
     finally:
         link.close()
@@ -164,11 +149,7 @@ def test_a_port_closed_before_the_flush_ahead_of_a_command_is_a_lost_link_and_no
     try:
         assert link.query("TYP") == "TYP L8121-01"
         before = len(model.commands)
-        spy = _CloseAfterARead(link, "_wait_spacing")  # stalled after the spacing, lock held
-        thread, out = _run(lambda: link.query("STS"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "STS", "_wait_spacing")  # stalled after the spacing, lock held
         _assert_lost_link(out, "STS")
         assert model.commands[before:] == [] and link._owed == []  # not written, nothing owed
     finally:
@@ -185,11 +166,7 @@ def test_a_link_closed_under_an_exchange_stays_closed(served):
     assert link.retries >= 1
     try:
         model.hold_once()
-        spy = _CloseAfterARead(link)
-        thread, out = _run(lambda: link.query("STS"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "STS")
         _assert_lost_link(out, "STS")
         assert not link.is_open and link._hold is None
         assert [command for command, _ in link._owed] == ["STS"]  # it may have reached the controller
@@ -209,10 +186,6 @@ def test_a_switch_on_whose_port_is_closed_under_it_still_says_x_rays_may_be_on(s
         link.timeout_s, link.write_timeout_s = _TIMEOUTS["timeout_s"], _TIMEOUTS["write_timeout_s"]
         assert "XON" in link.on_reconnect.not_resent
         model.hold_once()
-        spy = _CloseAfterARead(link)
-        thread, out = _run(lambda: link.query("XON"))
-        spy.close_after_it()
-        thread.join(3.0)
-        assert not thread.is_alive()
+        out = _closed_during(link, "XON")
         raised = out.get("raised")
         assert isinstance(raised, DeviceError) and "X-rays may be on" in str(raised), repr(raised)
