@@ -51,10 +51,28 @@ def test_acquire_example(tmp_path, monkeypatch):
     exec(compile(_block("### Acquire"), "README.md", "exec"), ns)
     from radiokit.io import ImageKey, read
 
-    f = read(tmp_path / "series.h5")
+    f = read(ns["result"].output)
     assert ns["result"].frames_written == 10 == f.data.shape[0]
     keys = f.meta["image_key"]
     assert (keys == ImageKey.PROJECTION).sum() == 6 and (keys == ImageKey.DARK).sum() == 2
+
+
+def test_the_acquire_examples_run_in_order_in_one_folder(tmp_path, monkeypatch):
+    """A reader following "Acquire" in one folder ran the Python example, then the protocol.toml's
+    `--dry-run`, which refused: both wrote series.h5, and an existing experiment file is refused by
+    the dry run as by the run (raw data is never overwritten). The two name different files."""
+    from conftest import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    text = README.read_text()
+    python_output = re.search(r'"output": "([^"]+)"', _block("### Acquire")).group(1)
+    toml = next(b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if b.startswith("# protocol.toml"))
+    toml_output = re.search(r'^output = "([^"]+)"', toml, re.M).group(1)
+    assert python_output != toml_output, "the Python example and protocol.toml write the same file"
+    (tmp_path / python_output).write_bytes(b"")  # the example's file, there before the dry run
+    (tmp_path / "protocol.toml").write_text(toml)
+    res = run_cli("acquire", "protocol.toml", "--dry-run", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
 
 
 def test_weak_alpha_example(capsys):
