@@ -269,3 +269,14 @@ def test_png_and_dicom_example(tmp_path, monkeypatch):
     np.testing.assert_array_equal(ns["png"].data[0], counts)
     np.testing.assert_array_equal(ns["dx"].data[0], counts.astype(np.int64) * 2 - 1000)
     assert ns["dx"].meta["bit_depth"] == 12 and abs(ns["dx"].meta["pixel_size_mm"] - 0.139) < 1e-12
+
+
+def test_make_test_worker_count_is_the_one_pytest_is_given():
+    """The README's "The two commands" said six pytest-xdist workers after addopts had moved to eight."""
+    import tomllib
+
+    words = {"two": 2, "three": 3, "four": 4, "five": 5, "six": 6, "seven": 7, "eight": 8}
+    said = re.search(r"on (\w+) pytest-xdist workers", README.read_text()).group(1)
+    pyproject = tomllib.loads((README.parent / "pyproject.toml").read_text())
+    addopts = pyproject["tool"]["pytest"]["ini_options"]["addopts"]
+    assert words[said] == int(re.search(r"-n (\d+)", addopts).group(1)), (said, addopts)
