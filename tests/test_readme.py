@@ -280,3 +280,23 @@ def test_make_test_worker_count_is_the_one_pytest_is_given():
     pyproject = tomllib.loads((README.parent / "pyproject.toml").read_text())
     addopts = pyproject["tool"]["pytest"]["ini_options"]["addopts"]
     assert words[said] == int(re.search(r"-n (\d+)", addopts).group(1)), (said, addopts)
+
+
+def test_every_command_line_option_is_named_in_the_readme():
+    """`--byteorder`, `--offset`, `register --fixed-frame` / `--retry`, `sim run --darks` / `--flats` /
+    `--seed` and `acquire --verbose` were in `--help` and nowhere in the README."""
+    import argparse
+
+    from radiokit.cli import build_parser
+
+    text, missing, parsers = README.read_text(), set(), [build_parser()]
+    while parsers:
+        parser = parsers.pop()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers.extend(action.choices.values())
+            hidden = isinstance(action, argparse._HelpAction) or action.help == argparse.SUPPRESS
+            named = [] if hidden else action.option_strings  # -o stands for --output
+            if named and not any(re.search(r"(?<![\w-])" + re.escape(o) + r"(?![\w-])", text) for o in named):
+                missing.add(f"{parser.prog} {named[-1]}")
+    assert not missing, sorted(missing)
