@@ -300,3 +300,22 @@ def test_every_command_line_option_is_named_in_the_readme():
             if named and not any(re.search(r"(?<![\w-])" + re.escape(o) + r"(?![\w-])", text) for o in named):
                 missing.add(f"{parser.prog} {named[-1]}")
     assert not missing, sorted(missing)
+
+
+def test_the_demo_output_shown_has_the_lines_the_demo_prints():
+    """The README's demo block showed the table alone; the demo also prints the frames it acquired
+    first and where the report is last. Lines compared by their words before the first number."""
+    from acquisition.demo import headline
+
+    doms = {d: {"improvement_factor": {"1": 1.1, "2": 1.2}, "bound": {"1": 1.0, "2": 1.2}, "cnr_reference": 7.0,
+                "cnr": {"1": 3.0, "2": 2.0}} for d in ("log", "negative")}  # fmt: skip
+    pairs = {p: {"log": 0.9, "negative": 0.7} for p in ("1->3", "2->3", "1->2")}
+    r = {"main_pair": "2->3", "domains": doms, "change_ratio": pairs, "control": {"domains": doms, "change_ratio": pairs},
+         "registration": {"2->3": {"method": "rc", "ok": False, "seconds": 5.2, "folds": 0}}}  # fmt: skip
+    times = {"acquire_experiment_s": 25, "acquire_control_s": 21, "process_s": 54, "total_s": 102}
+    summary = {"scene": "seed-breast", "dialect": "A", "files": {"frames": 26, "per_frame_overhead_ms": 6.2},
+               "results": r, "report": "out/demo/results/report.html", "timings": times}  # fmt: skip
+    label = lambda line: re.split(r"[\d:]", line.strip(), maxsplit=1)[0]
+    text = README.read_text()
+    shown = re.search(r"```\n((?:scene|\s+log domain)[^`]*)```", text).group(1).splitlines()
+    assert [label(x) for x in shown] == [label(x) for x in headline(summary).splitlines()]
