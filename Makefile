@@ -36,7 +36,7 @@ lint: $(VENV)/.installed-test
 	$(BIN)/lint-imports
 
 # Bytecode is written during the suite even where the environment says not to (PYTHONDONTWRITEBYTECODE,
-# set on CI's image): otherwise each of the four workers compiles every module and rewrites every test
+# set on CI's image): otherwise each of the eight workers compiles every module and rewrites every test
 # file again (collection 10.5 CPU s a worker instead of 3.5), and each of the suite's hundreds of
 # subprocesses compiles the modules it imports (~0.05-0.1 CPU s each). benchmarks/README.md, "The suite's wall time".
 test: lint

@@ -51,10 +51,28 @@ def test_acquire_example(tmp_path, monkeypatch):
     exec(compile(_block("### Acquire"), "README.md", "exec"), ns)
     from radiokit.io import ImageKey, read
 
-    f = read(tmp_path / "series.h5")
+    f = read(ns["result"].output)
     assert ns["result"].frames_written == 10 == f.data.shape[0]
     keys = f.meta["image_key"]
     assert (keys == ImageKey.PROJECTION).sum() == 6 and (keys == ImageKey.DARK).sum() == 2
+
+
+def test_the_acquire_examples_run_in_order_in_one_folder(tmp_path, monkeypatch):
+    """A reader following "Acquire" in one folder ran the Python example, then the protocol.toml's
+    `--dry-run`, which refused: both wrote series.h5, and an existing experiment file is refused by
+    the dry run as by the run (raw data is never overwritten). The two name different files."""
+    from conftest import run_cli
+
+    monkeypatch.chdir(tmp_path)
+    text = README.read_text()
+    python_output = re.search(r'"output": "([^"]+)"', _block("### Acquire")).group(1)
+    toml = next(b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if b.startswith("# protocol.toml"))
+    toml_output = re.search(r'^output = "([^"]+)"', toml, re.M).group(1)
+    assert python_output != toml_output, "the Python example and protocol.toml write the same file"
+    (tmp_path / python_output).write_bytes(b"")  # the example's file, there before the dry run
+    (tmp_path / "protocol.toml").write_text(toml)
+    res = run_cli("acquire", "protocol.toml", "--dry-run", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
 
 
 def test_weak_alpha_example(capsys):
@@ -251,3 +269,53 @@ def test_png_and_dicom_example(tmp_path, monkeypatch):
     np.testing.assert_array_equal(ns["png"].data[0], counts)
     np.testing.assert_array_equal(ns["dx"].data[0], counts.astype(np.int64) * 2 - 1000)
     assert ns["dx"].meta["bit_depth"] == 12 and abs(ns["dx"].meta["pixel_size_mm"] - 0.139) < 1e-12
+
+
+def test_make_test_worker_count_is_the_one_pytest_is_given():
+    """The README's "The two commands" said six pytest-xdist workers after addopts had moved to eight."""
+    import tomllib
+
+    words = {"two": 2, "three": 3, "four": 4, "five": 5, "six": 6, "seven": 7, "eight": 8}
+    said = re.search(r"on (\w+) pytest-xdist workers", README.read_text()).group(1)
+    pyproject = tomllib.loads((README.parent / "pyproject.toml").read_text())
+    addopts = pyproject["tool"]["pytest"]["ini_options"]["addopts"]
+    assert words[said] == int(re.search(r"-n (\d+)", addopts).group(1)), (said, addopts)
+
+
+def test_every_command_line_option_is_named_in_the_readme():
+    """`--byteorder`, `--offset`, `register --fixed-frame` / `--retry`, `sim run --darks` / `--flats` /
+    `--seed` and `acquire --verbose` were in `--help` and nowhere in the README."""
+    import argparse
+
+    from radiokit.cli import build_parser
+
+    text, missing, parsers = README.read_text(), set(), [build_parser()]
+    while parsers:
+        parser = parsers.pop()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                parsers.extend(action.choices.values())
+            hidden = isinstance(action, argparse._HelpAction) or action.help == argparse.SUPPRESS
+            named = [] if hidden else action.option_strings  # -o stands for --output
+            if named and not any(re.search(r"(?<![\w-])" + re.escape(o) + r"(?![\w-])", text) for o in named):
+                missing.add(f"{parser.prog} {named[-1]}")
+    assert not missing, sorted(missing)
+
+
+def test_the_demo_output_shown_has_the_lines_the_demo_prints():
+    """The README's demo block showed the table alone; the demo also prints the frames it acquired
+    first and where the report is last. Lines compared by their words before the first number."""
+    from acquisition.demo import headline
+
+    doms = {d: {"improvement_factor": {"1": 1.1, "2": 1.2}, "bound": {"1": 1.0, "2": 1.2}, "cnr_reference": 7.0,
+                "cnr": {"1": 3.0, "2": 2.0}} for d in ("log", "negative")}  # fmt: skip
+    pairs = {p: {"log": 0.9, "negative": 0.7} for p in ("1->3", "2->3", "1->2")}
+    r = {"main_pair": "2->3", "domains": doms, "change_ratio": pairs, "control": {"domains": doms, "change_ratio": pairs},
+         "registration": {"2->3": {"method": "rc", "ok": False, "seconds": 5.2, "folds": 0}}}  # fmt: skip
+    times = {"acquire_experiment_s": 25, "acquire_control_s": 21, "process_s": 54, "total_s": 102}
+    summary = {"scene": "seed-breast", "dialect": "A", "files": {"frames": 26, "per_frame_overhead_ms": 6.2},
+               "results": r, "report": "out/demo/results/report.html", "timings": times}  # fmt: skip
+    label = lambda line: re.split(r"[\d:]", line.strip(), maxsplit=1)[0]
+    text = README.read_text()
+    shown = re.search(r"```\n((?:scene|\s+log domain)[^`]*)```", text).group(1).splitlines()
+    assert [label(x) for x in shown] == [label(x) for x in headline(summary).splitlines()]
