@@ -122,8 +122,10 @@ def test_the_virtual_panel_s_own_geometry_is_taken(tmp_path, scene_file, emulato
         (setting("sim", "binning", 0), ("[sim] binning = 0", "1, 2 or 4")),
         (setting("sim", "binning", 3), ("[sim] binning = 3", "1, 2 or 4")),
         (setting("sim", "scene", "no-such-scene.toml"), ("[sim] scene", "no such scene file")),
+        # every frame would time out: the run connected, stopped at its first frame, left a notebook
+        (setting("sim", "frame_period_s", 3.0), ("[sim] frame_period_s = 3", "[detector] timeout_s = 2")),
     ],
-    ids=["binning 0", "binning 3", "missing scene"],
+    ids=["binning 0", "binning 3", "missing scene", "frame period over the time-out"],
 )
 def test_a_virtual_bench_that_cannot_be_built_leaves_no_notebook(tmp_path, scene_file, emulator, capsys, edit, words):
     refused(tmp_path, scene_file, emulator, capsys, edit, *words)
@@ -181,3 +183,16 @@ def test_power_over_the_rating_sends_nothing(tmp_path, scene_file, emulator, cap
         d["source"].update(voltage_kv=150, current_ua=501)
 
     refused(tmp_path, scene_file, emulator, capsys, edit, "[source]")
+
+
+def test_the_python_api_refuses_a_detector_that_is_not_the_virtual_panel_before_any_command(
+    tmp_path, scene_file, emulator
+):
+    """``run(p, sim=True)`` (README's example) checks what the command line does, before any file."""
+    from acquisition.protocols.compression_series import ProtocolError, load_protocol, run
+
+    model, server = emulator
+    p = load_protocol(protocol(tmp_path, scene_file, server.url, setting("detector", "bits", 8)))
+    with pytest.raises(ProtocolError, match=r"\[detector\] bits = 8"):
+        run(p, sim=True, progress=False)
+    assert model.commands == [] and list((tmp_path / "out").iterdir()) == []

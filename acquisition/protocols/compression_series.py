@@ -803,6 +803,11 @@ def check_sim(p: Protocol) -> None:
     from sim.detector import PanelModel
     from sim.scene import load_scene
 
+    if p.sim.frame_period_s > p.detector.timeout_s:  # SimDetector would time out on every frame
+        raise ProtocolError(
+            f"[sim] frame_period_s = {shown(p.sim.frame_period_s)} exceeds [detector] timeout_s = "
+            f"{shown(p.detector.timeout_s)}: every frame would time out"
+        )
     b = p.sim.binning
     if b is not None and b not in (1, 2, 4):
         raise ProtocolError(f"[sim] binning = {b!r}: expected 1, 2 or 4 (the C7942's)")
@@ -1699,6 +1704,8 @@ def run(
     from radiokit.progress import tqdm
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
+    if sim and devices is None:  # the Python API as the command line: before any file or byte
+        check_sim(p)
     out = Path(p.output)
     resume, done, complete, hold = _begin(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
     if complete is not None:
