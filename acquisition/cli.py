@@ -94,7 +94,7 @@ def _run(args) -> int:
         print(f"error: {stray}", file=sys.stderr)
         return 2
     from acquisition.errors import DeviceError
-    from acquisition.protocols.compression_series import check_lab, load_protocol
+    from acquisition.protocols.compression_series import check_lab, check_sim, load_protocol
 
     try:
         p = load_protocol(Path(args.protocol))  # a file, even when its path holds '=' (not TOML text)
@@ -108,12 +108,11 @@ def _run(args) -> int:
         return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
-    if not args.sim:
-        try:  # the lab's bench: refused here, before the dry run's plan or the run's first file
-            check_lab(p)
-        except DeviceError as exc:
-            print(f"error: {args.protocol}: {exc}", file=sys.stderr)
-            return 2
+    try:  # the lab's bench or the virtual one: refused here, before the dry run's plan or the run's first file
+        (check_sim if args.sim else check_lab)(p)
+    except DeviceError as exc:
+        print(f"error: {args.protocol}: {exc}", file=sys.stderr)
+        return 2
     from radiokit.io import restore_previous
 
     would = []

@@ -100,6 +100,7 @@ __all__ = [
     "Devices",
     "lab_devices",
     "check_lab",
+    "check_sim",
     "sim_devices",
     "ProtocolError",
     "PHASES",
@@ -240,10 +241,8 @@ class Protocol:
         ):
             _check_numbers(name, section)
         s = self.series
-        if s.darks < 0 or s.flats < 0 or s.frames_per_step < 1:
-            raise ProtocolError(
-                f"series: darks {s.darks} and flats {s.flats} must be >= 0, frames_per_step {s.frames_per_step} >= 1"
-            )
+        if s.frames_per_step < 1:  # (darks and flats < 0: refused with every number above)
+            raise ProtocolError(f"[series] frames_per_step = {s.frames_per_step!r}: expected at least 1")
         s.steps = _checked_steps(s.steps)
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
@@ -302,7 +301,12 @@ def _checked_steps(steps) -> tuple:
         raise ProtocolError(f"[series] steps = {list(steps)!r}: expected increasing compression ratios in [0, 0.9)")
     ratios = tuple(float(r) for r in steps)
     if not ratios or any(not 0 <= r < 0.9 for r in ratios) or list(ratios) != sorted(set(ratios)):
-        raise ProtocolError(f"series.steps {list(steps)}: expected increasing compression ratios in [0, 0.9)")
+        hint = ""
+        if ratios and all(1 <= r <= 100 for r in ratios if math.isfinite(r)):  # 15 meant 15 %
+            hint = f" (percentages? write {[round(r / 100, 6) for r in ratios]})"
+        raise ProtocolError(
+            f"[series] steps = {list(steps)!r}: expected increasing compression ratios in [0, 0.9){hint}"
+        )
     return ratios
 
 
@@ -471,12 +475,22 @@ def _check_source(s: SourceSettings) -> None:
     # a run that polls as asked must never trip it: the beam monitor polls every poll_s, the
     # driver's warm-up and ramp waits every limits.poll_s
     period = max(s.poll_s, cfg.poll_s)
+    if s.watchdog_s > WATCHDOG_MAX_S:
+        # the guardian waits for the next poll this long with X-rays possibly on: 1e300 passed
+        # here and overflowed its select() after the connect had begun
+        raise ProtocolError(
+            f"[source] watchdog_s = {shown(s.watchdog_s)}: expected at most {WATCHDOG_MAX_S:g} s "
+            "(the longest a hung run may keep X-rays on), or 0 for none"
+        )
     if 0 < s.watchdog_s < 4 * period:
         raise ProtocolError(
             f"[source] watchdog_s = {s.watchdog_s!r}: expected at least 4 poll periods "
             f"({shown(4 * period, s.watchdog_s)} s), or 0 for none"
         )
 
+
+#: The longest wait for a poll before the guardian switches off (``[source] watchdog_s``).
+WATCHDOG_MAX_S = 600.0
 
 #: The longest command spacing a protocol may ask for (``[source] min_interval_s``).
 MIN_INTERVAL_MAX_S = 1.0
@@ -775,6 +789,45 @@ def check_lab(p: Protocol) -> None:
         raise ProtocolError(
             f'[frame] kind = "{p.frame.kind}": the lab\'s frame is kind = "manual" (a motorised stage has no '
             'driver yet; kind = "sim" needs --sim)'
+        )
+
+
+def check_sim(p: Protocol) -> None:
+    """What the virtual bench needs of a protocol: a scene it can load, a binning the panel has,
+    and a ``[detector]`` that describes the simulated panel (a C7942 preset binned as the scene
+    or ``[sim] binning`` says, 12-bit). Checked before anything is written or sent, as
+    :func:`check_lab` is for the lab: a shape or bits that contradicted the panel switched X-rays
+    on and then stopped the run at its first frame (bits 8), or wrote a file that mislabelled it
+    (bits 14, a shape the frames do not have)."""
+    from radiokit.io import PRESETS
+    from sim.detector import PanelModel
+    from sim.scene import load_scene
+
+    if p.sim.frame_period_s > p.detector.timeout_s:  # SimDetector would time out on every frame
+        raise ProtocolError(
+            f"[sim] frame_period_s = {shown(p.sim.frame_period_s)} exceeds [detector] timeout_s = "
+            f"{shown(p.detector.timeout_s)}: every frame would time out"
+        )
+    b = p.sim.binning
+    if b is not None and b not in (1, 2, 4):
+        raise ProtocolError(f"[sim] binning = {b!r}: expected 1, 2 or 4 (the C7942's)")
+    try:
+        scene = load_scene(p.sim.scene)
+    except (ValueError, OSError) as exc:
+        raise ProtocolError(f"[sim] scene = {p.sim.scene!r:.80}: {exc}") from None
+    panel = PRESETS[scene.detector.preset]
+    b = b or scene.detector.binning
+    rows, cols = panel.rows // b, panel.cols // b
+    what = f"the virtual bench's panel is {rows} x {cols} ({scene.detector.preset} at binning {b})"
+    d = p.detector
+    if d.shape is not None and tuple(d.shape) != (rows, cols):
+        raise ProtocolError(f"[detector] shape = {list(d.shape)}: {what}; give its shape or none")
+    if d.preset is not None and (PRESETS[d.preset].rows, PRESETS[d.preset].cols) != (rows, cols):
+        raise ProtocolError(f"[detector] preset = {d.preset!r}: {what}; give its preset or none")
+    if d.bits != PanelModel.bits:
+        raise ProtocolError(
+            f"[detector] bits = {d.bits!r}: the virtual bench's panel is {PanelModel.bits}-bit (a C7942); "
+            f"give {PanelModel.bits} or none"
         )
 
 
@@ -1651,6 +1704,8 @@ def run(
     from radiokit.progress import tqdm
 
     p = protocol if isinstance(protocol, Protocol) else load_protocol(protocol)
+    if sim and devices is None:  # the Python API as the command line: before any file or byte
+        check_sim(p)
     out = Path(p.output)
     resume, done, complete, hold = _begin(p, out, resume=resume, overwrite=overwrite, sim=sim, devices=devices)
     if complete is not None:
