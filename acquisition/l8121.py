@@ -2245,9 +2245,16 @@ class L8121:
         query = self.dialect.readings.get(name)
         if query is None:
             raise DeviceError(f"{self.port}: dialect {self.dialect.name} has no {name} reading")
-        reply = self._exchange(query.command, query=query)
+        value = self._parsed(query, self._exchange(query.command, query=query))
+        if name in ("state", "beam"):
+            self._last_state = value if name == "state" else value[0]
+            self._state_unread = False
+        return value
+
+    def _parsed(self, query: Query, reply: str) -> Any:
+        """``reply`` parsed by ``query``; an unparseable one fails safe and is raised."""
         try:
-            value = query.parse(reply)
+            return query.parse(reply)
         except ValueError as why:
             err = DeviceError(
                 f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
@@ -2255,10 +2262,6 @@ class L8121:
             err.reply = reply  # what answered (the connect tells an L8121 from another instrument by it)
             self._fail_safe(err)
             raise err from None
-        if name in ("state", "beam"):
-            self._last_state = value if name == "state" else value[0]
-            self._state_unread = False
-        return value
 
     def _do(self, name: str, value=None) -> None:
         """Send the dialect's command for the setting or action ``name`` (validated first)."""
@@ -3165,12 +3168,7 @@ class L8121:
                 if getattr(exc, "refused", False):
                     return told
                 raise
-            try:
-                busy = query.parse(reply) == "BUSY"
-            except ValueError as why:
-                err = DeviceError(f"{self.port}: unparseable reply to {query.command} (dialect B): {reply!r} ({why})")
-                self._fail_safe(err)
-                raise err from None
+            busy = self._parsed(query, reply) == "BUSY"
             waited = time.monotonic() - t0
             if not busy:
                 if told:
