@@ -1760,6 +1760,16 @@ def test_python_m_radiokit_cli_keeps_a_finished_acquires_signals_ignored_to_the_
     assert res.stderr.strip().splitlines()[-1] == "ignored at exit: [True, True]", res.stderr
 
 
+def _puts_a_handler_back(frame, event, arg) -> bool:
+    """For a profile hook: radiokit/cli.py has just set a signal's handler (``signal.signal``'s C
+    function returned; ``frame`` is signal.py's wrapper, called from cli.py)."""
+    import _signal  # what signal.signal calls: the C function a profile hook sees return
+
+    from radiokit.cli import __file__ as cli_file
+
+    return event == "c_return" and arg is _signal.signal and frame.f_back.f_code.co_filename == cli_file
+
+
 @pytest.mark.parametrize("landing", ["SIGINT", "SIGHUP", "SIGINT via another thread"])
 def test_main_gives_every_handler_back_when_a_stop_lands_midway_through_the_give_back(monkeypatch, capsys, landing):
     """A stop landing while ``main()`` puts the caller's handlers back (some back, some not): the
@@ -1771,13 +1781,11 @@ def test_main_gives_every_handler_back_when_a_stop_lands_midway_through_the_give
     handlers back, SIGHUP's not yet; or at another thread of the caller's, which this thread's
     block does not cover: Python's handler then runs in this thread at once, and raises in the
     give-back. Real emulator on a pseudo-terminal."""
-    import _signal  # what signal.signal calls: the C function a profile hook sees return
     import signal
     import threading
 
     from acquisition.emulators.l8121 import L8121Model, PtyServer
     from radiokit.cli import _TAKEN, main
-    from radiokit.cli import __file__ as cli_file
 
     got = []
 
@@ -1794,10 +1802,8 @@ def test_main_gives_every_handler_back_when_a_stop_lands_midway_through_the_give
 
     def hook(frame, event, arg):
         if (
-            event == "c_return"
-            and arg is _signal.signal
+            _puts_a_handler_back(frame, event, arg)
             and not sent
-            and frame.f_back.f_code.co_filename == cli_file  # (frame: signal.py's wrapper)
             and signal.getsignal(signal.SIGINT) is interrupt
             and signal.getsignal(signal.SIGTERM) is mine
             and signal.getsignal(signal.SIGHUP) is not mine
@@ -1856,14 +1862,12 @@ def test_main_leaves_no_signal_blocked_when_several_stops_raise_at_once_in_the_g
     a signal lands in another thread (``_thread.interrupt_main(signum)``, one C call for all:
     pthread_kill from a thread cannot note them without the hook's own code running them).
     Real emulator on a pseudo-terminal."""
-    import _signal  # what signal.signal calls: the C function a profile hook sees return
     import _thread
     import collections
     import signal
 
     from acquisition.emulators.l8121 import L8121Model, PtyServer
     from radiokit.cli import _TAKEN, main
-    from radiokit.cli import __file__ as cli_file
 
     got = []
 
@@ -1885,10 +1889,8 @@ def test_main_leaves_no_signal_blocked_when_several_stops_raise_at_once_in_the_g
 
     def hook(frame, event, arg):
         if (
-            event == "c_return"
-            and arg is _signal.signal
+            _puts_a_handler_back(frame, event, arg)
             and not sent
-            and frame.f_back.f_code.co_filename == cli_file  # (frame: signal.py's wrapper)
             and all(signal.getsignal(sig) is raisers[sig] for sig in raisers)
             and signal.getsignal(signal.SIGQUIT) is not mine
         ):
