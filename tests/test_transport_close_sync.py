@@ -268,8 +268,8 @@ def test_a_running_switch_off_is_not_cut_short_by_a_close(served):
         thread, out = in_thread(lambda: link.query("XOF"))
         assert check.entered.wait(2.0)
         stall_s = close_wait_s(**_SHORT) + 0.2  # past a plain exchange's wait
+        t0 = time.monotonic()  # before the timer: the check is let go no sooner than stall_s after it
         threading.Timer(stall_s, check.go.set).start()
-        t0 = time.monotonic()
         link.close()
         closed_s = time.monotonic() - t0
         thread.join(3.0)
