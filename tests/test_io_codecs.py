@@ -173,6 +173,18 @@ def test_a_lossless_syntax_whose_header_says_it_was_lossy_before_warns(tmp_path)
         np.testing.assert_array_equal(read(path).data, stack)
 
 
+def test_a_lossy_stream_under_a_lossless_syntax_is_said(tmp_path):
+    """A writer's mislabel: baseline (DCT) streams under JPEG Lossless SV1. The stream is what was
+    stored: read, and said to be lossy."""
+    stack = (_counts(n=2) >> 4).astype(np.uint8)
+    encode = lambda f: imagecodecs.jpeg8_encode(f, level=90)
+    path = _dicom(tmp_path / "mis.dcm", stack, uid.JPEGLosslessSV1, encode, bits=8, allocated=8)
+    with pytest.warns(LossyWarning, match=r"mis\.dcm: its frames are JPEG baseline.*says lossless") as said:
+        got = read(path)
+    assert len([w for w in said if w.category is LossyWarning]) == 1
+    assert got.data.shape == stack.shape
+
+
 @pytest.mark.parametrize(
     "name, damage, said",
     [
@@ -357,3 +369,24 @@ def test_info_and_register_take_jpeg_files(tmp_path):
     assert res.returncode in (0, 1), res.stderr
     d = read_registration(tmp_path / "r.h5").displacement[:, 16:-16, 16:-16]
     assert abs(float(np.median(d[0])) - 0.6) < 0.1 and abs(float(np.median(d[1])) + 1.3) < 0.1
+
+
+def test_calibrate_and_correct_take_compressed_frames(tmp_path):
+    """Darks and flats as JPEG 2000, a projection as JPEG-LS (both lossless): the transmission is
+    (proj - dark) / (flat - dark) of the counts written, 0.5 here to the frames' noise."""
+    rng = np.random.default_rng(2)
+    paths = {"dark": [], "flat": []}
+    for kind, level in (("dark", 100), ("flat", 3000)):
+        for k in range(3):
+            path = tmp_path / f"{kind}{k}.j2k"
+            counts = np.round(rng.normal(level, 3, SHAPE)).astype(np.uint16)
+            path.write_bytes(imagecodecs.jpeg2k_encode(counts, level=0, codecformat="J2K"))
+            paths[kind].append(path)
+    proj = tmp_path / "proj.jls"
+    proj.write_bytes(imagecodecs.jpegls_encode(np.round(rng.normal(1550, 3, SHAPE)).astype(np.uint16)))
+    res = run_cli("calibrate", "--dark", *paths["dark"], "--flat", *paths["flat"], "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    res = run_cli("correct", proj, "--cal", tmp_path / "cal.h5", "--domain", "linear", "-o", tmp_path / "t.h5")
+    assert res.returncode == 0, res.stderr
+    t = read(tmp_path / "t.h5").data
+    assert abs(float(np.median(t)) - 0.5) < 0.005

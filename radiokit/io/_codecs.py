@@ -375,6 +375,13 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
         raise FormatError(path, f"frame {i}'s codestream header cannot be read ({exc}): corrupt") from None
     _check_frame_header(path, header, geometry, i)
     check_complete(path, buf, header, f"frame {i} is ")
+    syntax = ds.file_meta.TransferSyntaxUID
+    if header["lossless"] is False and compressed_syntaxes().get(syntax) is False and not geometry.get("mislabel_said"):
+        geometry["mislabel_said"] = True  # once per open file, not once per frame
+        # a lossless syntax's label on a lossy stream (a writer's mistake): the stream is what was stored
+        warn_lossy(
+            path, f"its frames are {describe(header)} streams, though its transfer syntax {syntax.name} says lossless"
+        )
     try:
         data = decode(buf, header)
     except Exception as exc:  # imagecodecs' codec errors: one class per codec
