@@ -498,11 +498,10 @@ class FrameSource:
 
     def _open_jpeg(self, dataset=None, **hints):
         # its SOF or SIZ against the budget before the codec allocates it (a 2 KB JPEG may declare 60000 x 60000)
+        with open(self.path, "rb") as fh:
+            if _image_signature(fh.read(132)) != self.format:  # format="jpeg" given for another file
+                raise FormatError(self.path, _NO_SIGNATURE[self.format])
         self._codestream = header = file_header(self.path)
-        if self.format == "jpeg2000" and header["codec"] != "jpeg2k":  # format="jpeg2000" given for a JPEG
-            raise FormatError(self.path, f"{_NO_SIGNATURE['jpeg2000']} (a JPEG stream)")
-        if self.format == "jpeg" and header["codec"] == "jpeg2k":
-            raise FormatError(self.path, f"{_NO_SIGNATURE['jpeg']} (a JPEG 2000 stream)")
         check_file_header(self.path, header, self._budget)
         self.n, self.frame_shape, self.dtype = 1, (header["height"], header["width"]), out_dtype(header)
         self.meta.update(n=1, rows=header["height"], cols=header["width"], dtype=str(self.dtype))
