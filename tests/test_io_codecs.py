@@ -390,3 +390,48 @@ def test_calibrate_and_correct_take_compressed_frames(tmp_path):
     assert res.returncode == 0, res.stderr
     t = read(tmp_path / "t.h5").data
     assert abs(float(np.median(t)) - 0.5) < 0.005
+
+
+@pytest.mark.parametrize("name", sorted(PLAIN) + ["baseline.jpg"])
+def test_damaged_headers_are_one_line_refusals(tmp_path, capfd, name):
+    """Every byte of the first 64 (the codestream's header: SOF, SIZ, JP2's boxes) set to 0x00 and
+    to 0xFF in turn: each file reads, or is refused in one FormatError line naming it; no other
+    exception, no stderr."""
+    counts = _counts(n=1)[0]
+    if name == "baseline.jpg":
+        stream = imagecodecs.jpeg8_encode((counts >> 4).astype(np.uint8), level=90)
+    else:
+        stream = PLAIN[name](counts)
+    path = tmp_path / name
+    for at in range(min(64, len(stream))):
+        for value in (0x00, 0xFF):
+            damaged = bytearray(stream)
+            damaged[at] = value
+            path.write_bytes(bytes(damaged))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    read(path, budget="64MiB")
+                except FormatError as exc:
+                    assert name in str(exc) and "\n" not in str(exc), (at, value, str(exc))
+    assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls", "j2k"])
+def test_damaged_frame_headers_in_a_dicom_are_one_line_refusals(tmp_path, capfd, name):
+    """As above, in a DICOM frame's codestream: read, or one FormatError line naming the file."""
+    syntax, encode = LOSSLESS[name]
+    counts = _counts(n=1)
+    stream = encode(counts[0])
+    path = tmp_path / f"{name}.dcm"
+    for at in range(0, min(64, len(stream)), 2):
+        damaged = bytearray(stream)
+        damaged[at] ^= 0xFF
+        _dicom(path, counts, syntax, lambda f, d=bytes(damaged): d)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                read(path)
+            except FormatError as exc:
+                assert path.name in str(exc) and "\n" not in str(exc), (at, str(exc))
+    assert capfd.readouterr().err == ""

@@ -252,9 +252,11 @@ def check_file_header(path, header: dict, budget) -> None:
     """Refuse, before decoding, a file declaring more than the budget, a colour space of neither
     one nor three components, or samples over 16 bits."""
     w, h, c, p = (header[k] for k in ("width", "height", "components", "precision"))
+    if w <= 0 or h <= 0 or not 1 <= p:  # (a JPEG 2000 image offset past its own extent is negative)
+        raise FormatError(
+            path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
+        )
     check_budget(path, decoded_bytes(header), f"its header's {w}x{h} {p}-bit image of {c} component(s)", budget)
-    if not w or not h:
-        raise FormatError(path, f"a {describe(header)} image of {w}x{h}: no pixels (or a height given later, by DNL)")
     if c not in (1, 3):
         raise FormatError(
             path, f"a {describe(header)} image: {c} components (CMYK, or grey with alpha), not one channel of counts"
