@@ -228,15 +228,45 @@ def test_a_fragment_whose_header_is_not_the_dicom_s_image_is_refused_before_deco
     assert "\n" not in str(info.value)
 
 
-def test_a_compressed_dicom_declaring_60000_by_60000_is_refused_by_the_budget(tmp_path):
+def test_a_frame_wider_than_bits_allocated_is_refused_and_one_wider_than_bits_stored_read(tmp_path):
+    """A 16-bit JPEG-LS stream cannot be held in BitsAllocated 8: refused before decoding. One of
+    16 bits for BitsStored 12 (writers do this: CharLS's default, OpenJPEG's for uint16) is read, its
+    values judged against BitsStored as any DICOM's are."""
+    counts = _counts(n=1)
+    wide = _dicom(tmp_path / "wide.dcm", counts, uid.JPEGLSLossless, imagecodecs.jpegls_encode, bits=8, allocated=8)
+    with pytest.raises(FormatError, match=r"wide\.dcm: frame 0 is a JPEG-LS NEAR 0, 16-bit.* in 8-bit words"):
+        read(wide)
+    assert bytes_header_precision(counts[0]) == 16  # what CharLS wrote: the 12-bit file below is 16-bit inside
+    np.testing.assert_array_equal(_quiet_read(_dicom(tmp_path / "ok.dcm", counts, *LOSSLESS["jls"])).data, counts)
+
+
+def bytes_header_precision(frame) -> int:
+    from radiokit.io._codecs import bytes_header
+
+    return bytes_header(imagecodecs.jpegls_encode(frame))["precision"]
+
+
+def test_a_compressed_dicom_declaring_60000_by_60000_is_refused_by_the_budget(tmp_path, monkeypatch):
+    """Refused from its header: against a given budget, and under the default one (a fraction of
+    the machine, which may hold 7.2 GB) by the proportion of its few KB to what they would decode
+    to, as a compressed TIFF is, before any frame is decoded; each frame's own SOF agreeing with
+    Rows x Columns (encoded so here) would otherwise be decoded."""
+    from radiokit.io import BUDGET_ENV
+
+    monkeypatch.delenv(BUDGET_ENV, raising=False)
+    path = _dicom(tmp_path / "big.dcm", _counts(n=1), *LOSSLESS["sv1"])
     import pydicom
 
-    path = _dicom(tmp_path / "big.dcm", _counts(n=1), *LOSSLESS["sv1"])
     ds = pydicom.dcmread(path)
     ds.Rows, ds.Columns = 60000, 60000
     ds.save_as(path)
-    with pytest.raises(FormatError, match=r"big\.dcm: .*1 frame\(s\) of 60000x60000") as info:
+    with pytest.raises(FormatError, match=r"big\.dcm: .*1 frame\(s\) of 60000x60000.*memory budget") as info:
         read(path, budget="1GiB")
+    assert "\n" not in str(info.value)
+    with pytest.raises(
+        FormatError, match=r"big\.dcm: .*60000x60000 uint16 would decode to .*decompression bomb"
+    ) as info:
+        read(path)
     assert "\n" not in str(info.value)
 
 
@@ -313,9 +343,11 @@ def test_a_colour_jpeg_of_a_grey_image_is_one_channel_and_of_colours_refused(tmp
 
 
 @pytest.mark.parametrize("name", ["bomb.jpg", "bomb.j2k"])
-def test_a_file_declaring_60000_by_60000_is_refused_from_its_header(tmp_path, name):
+def test_a_file_declaring_60000_by_60000_is_refused_from_its_header(tmp_path, monkeypatch, name):
     """A few-KB file whose SOF (SIZ) declares 60000 x 60000: refused against the budget before the
     codec allocates anything."""
+    from radiokit.io import BUDGET_ENV
+
     stream = bytearray(PLAIN["lossless.jpg" if name.endswith("jpg") else "frame.j2k"](_counts(n=1)[0]))
     if name.endswith("jpg"):
         sof = stream.index(b"\xff\xc3")
@@ -324,8 +356,16 @@ def test_a_file_declaring_60000_by_60000_is_refused_from_its_header(tmp_path, na
         stream[8:16] = struct.pack(">II", 60000, 60000)
     path = tmp_path / name
     path.write_bytes(bytes(stream))
-    with pytest.raises(FormatError, match=rf"{name.replace('.', '[.]')}: .*60000x60000 12-bit") as info:
+    with pytest.raises(FormatError, match=rf"{name.replace('.', '[.]')}: .*60000x60000 12-bit.*memory budget") as info:
         read(path, budget="1GiB")
+    assert "\n" not in str(info.value)
+    # under the default budget (half the machine's memory, which may hold it): by its proportion
+    # (or by the budget, where OpenJPEG's own 32-bit image of it passes that)
+    monkeypatch.delenv(BUDGET_ENV, raising=False)
+    with pytest.raises(
+        FormatError, match=rf"{name.replace('.', '[.]')}: .*(decompression bomb|over the memory budget)"
+    ) as info:
+        read(path)
     assert "\n" not in str(info.value)
 
 

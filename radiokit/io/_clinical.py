@@ -17,7 +17,7 @@ import numpy as np
 from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._codecs import compressed_frame, compressed_syntaxes, say_lossy_dicom
+from radiokit.io._codecs import check_dicom_proportion, compressed_frame, compressed_syntaxes, say_lossy_dicom
 from radiokit.io._experiment import usable_pixel_sizes
 
 
@@ -355,6 +355,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
     _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
+    if syntax in compressed_syntaxes():
+        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
     slope, intercept = (
         _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
     )

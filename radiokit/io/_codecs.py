@@ -16,7 +16,7 @@ import numpy as np
 
 from radiokit._names import shown
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
+from radiokit.io._budget import check_budget, check_proportion
 
 JPEG_MAGIC = b"\xff\xd8\xff"
 J2K_MAGIC = b"\xff\x4f\xff\x51"  # SOC then SIZ: a bare JPEG 2000 codestream (.j2k, .j2c, .jph)
@@ -256,7 +256,11 @@ def check_file_header(path, header: dict, budget) -> None:
         raise FormatError(
             path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
         )
-    check_budget(path, decoded_bytes(header), f"its header's {w}x{h} {p}-bit image of {c} component(s)", budget)
+    what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
+    check_budget(path, decoded, what, budget)
+    # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
+    codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
+    check_proportion(path, what, decoded, decoded, os.path.getsize(path), codec, budget)
     if c not in (1, 3):
         raise FormatError(
             path, f"a {describe(header)} image: {c} components (CMYK, or grey with alpha), not one channel of counts"
@@ -315,6 +319,16 @@ def compressed_syntaxes() -> dict:
         uid.HTJ2KLosslessRPCL: False,
         uid.HTJ2K: None,
     }
+
+
+def check_dicom_proportion(path, syntax, n: int, rows: int, cols: int, dtype, budget) -> None:
+    """Refuse, before decoding, a compressed DICOM whose header declares frames out of all
+    proportion to the file's bytes (:func:`check_proportion`): each frame's codestream must be the
+    declared image, so a 4 KB file declaring 60000 x 60000 would otherwise be decoded, its few
+    bytes taken for 7 GB of pixels, within a large machine's budget."""
+    frame = rows * cols * np.dtype(dtype).itemsize
+    what = f"its header's {n} frame(s) of {rows}x{cols} {np.dtype(dtype)}"
+    check_proportion(path, what, n * frame, frame, os.path.getsize(path), syntax.name, budget)
 
 
 def say_lossy_dicom(path, ds, syntax) -> str | None:
