@@ -120,6 +120,8 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
             "itex": "an ITEX .img",
             "raw": "headerless raw",
             "png": "a PNG",
+            "jpeg": "a JPEG",
+            "jpeg2000": "a JPEG 2000 file",
             "dicom": "a DICOM file",
         }.get(f, f)
         # under --format the file's own kind is not what refused it (an HDF5 file was called "a TIFF")
@@ -140,7 +142,11 @@ def _add_raw_hints(p):
     g.add_argument("--dtype", help="pixel type with --shape, e.g. '<f4' for float32 (default '<u2', 16-bit)")
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
-    g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5", "png", "dicom"], help="skip format detection")
+    g.add_argument(
+        "--format",
+        choices=["raw", "tiff", "itex", "hdf5", "png", "jpeg", "jpeg2000", "dicom"],
+        help="skip format detection",
+    )
     g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
@@ -167,10 +173,13 @@ def _clinical_summary(meta: dict) -> dict:
     MONOCHROME1 read as stored) and where its pitch came from."""
     if meta.get("format") == "png":
         return {"png_bit_depth": meta.get("png_bit_depth")}
+    if meta.get("format") in ("jpeg", "jpeg2000"):
+        return {"compression": meta.get("compression")}
     r = meta.get("dicom_rescale")
     return {
         "modality": meta.get("modality") or None,
         "transfer_syntax": meta.get("transfer_syntax"),
+        "lossy": meta.get("lossy"),
         "photometric": meta.get("photometric_note") or meta.get("photometric"),
         "rescale": f"stored * {r['slope']:g} + {r['intercept']:g} (RescaleSlope/Intercept)" if r else None,
         "pixel_size_from": meta.get("pixel_size_source"),
@@ -228,7 +237,7 @@ def _summary(meta: dict) -> dict:
         if meta.get("bit_depth_from"):  # where a 16-bit file's saturation line comes from
             out["bit_depth"] = f"{meta['bit_depth']} ({meta['bit_depth_from']})"
         out["gdal_scaling"] = _gdal_scaling(meta.get("gdal_scaling"))
-    elif fmt in ("dicom", "png"):
+    elif fmt in ("dicom", "png", "jpeg", "jpeg2000"):
         out = _clinical_summary(meta)
     elif fmt == "calibration":
         out = _calibration_summary(meta)
@@ -1649,7 +1658,7 @@ def _add_info(sub):
         "files",
         nargs="+",
         type=Path,
-        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
+        help="frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG, JPEG, JPEG 2000 or DICOM",
     )
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument(
@@ -1675,7 +1684,7 @@ def _add_calibrate(sub):
         "--dark",
         nargs="+",
         type=Path,
-        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM",
+        help="dark (beam off) frame files: raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG, JPEG, JPEG 2000 or DICOM",
     )
     p.add_argument("--flat", nargs="+", type=Path, help="flat (open beam, no phantom) frame files, as --dark")
     p.add_argument("--experiment", type=Path, help="take darks and flats from an experiment file")
@@ -1713,7 +1722,7 @@ def _add_correct(sub):
         "frames",
         nargs="+",
         type=Path,
-        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG or DICOM), or one experiment file without --cal",
+        help="frame files (raw (headerless 16-bit, geometry from --preset or --shape, or the size where only one fits), TIFF, HDF5 (radiokit's files; others with --dataset), Hamamatsu ITEX .img, greyscale PNG, JPEG, JPEG 2000 or DICOM), or one experiment file without --cal",
     )
     p.add_argument("--cal", type=Path, help="calibration file (default: from the experiment file's darks and flats)")
     p.add_argument(

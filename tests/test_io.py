@@ -967,7 +967,9 @@ def test_unknown_hint_and_format(tmp_path):
     np.zeros(10, "<u2").tofile(path)
     with pytest.raises(TypeError, match="unknown hints"):
         read(path, shapes=(2, 5))
-    _raises_format(path, "format=", format="jpeg")
+    _raises_format(path, "format=", format="webp")
+    _raises_format(path, "no JPEG signature", format="jpeg")  # (read since session 54)
+    _raises_format(path, "no JPEG 2000 signature", format="jpeg2000")
     _raises_format(path, "no PNG signature", format="png")  # (read since session 53: a PNG, checked)
 
 

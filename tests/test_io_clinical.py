@@ -188,12 +188,13 @@ def test_monochrome1_is_said_and_read_as_stored(tmp_path):
     assert got.meta["photometric"] == "MONOCHROME1" and "not inverted" in got.meta["photometric_note"]
 
 
-def test_a_compressed_syntax_pydicom_cannot_decode_alone_is_refused_by_name(tmp_path):
-    from pydicom.uid import JPEG2000Lossless, JPEGBaseline8Bit
+def test_a_compressed_syntax_radiokit_does_not_decode_is_refused_by_name(tmp_path):
+    """(JPEG, JPEG-LS, JPEG 2000 and HTJ2K are decoded: tests/test_io_codecs.py.)"""
+    from pydicom.uid import MPEG2MPML, JPEG2000MCLossless
 
     for syntax, said in (
-        (JPEG2000Lossless, "JPEG 2000 Image Compression (Lossless Only)"),
-        (JPEGBaseline8Bit, "lossy"),
+        (JPEG2000MCLossless, "JPEG 2000 Part 2 Multi-component Image Compression (Lossless Only)"),
+        (MPEG2MPML, "lossy"),
     ):
         path = _dicom(tmp_path / "j.dcm", _texture(), syntax=syntax)
         with pytest.raises(FormatError, match=r"j\.dcm: a DICOM file compressed as ") as info:

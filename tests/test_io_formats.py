@@ -396,12 +396,6 @@ def test_matlab_v5_file_is_named_not_taken_for_raw_frames(tmp_path):
         read(path)
 
 
-def _jpeg(path, frame):
-    import cv2
-
-    assert cv2.imwrite(str(path), (frame >> 4).astype(np.uint8))
-
-
 def _mhd(path, frame):
     path.write_bytes(
         b"ObjectType = Image\nNDims = 2\nDimSize = 40 30\nElementType = MET_USHORT\nElementDataFile = f.raw\n"
@@ -421,14 +415,13 @@ def _dcimg(path, frame):  # Hamamatsu DCAM-API's own file (HCImage's default): "
     "writer, name, what",
     [
         (_dcimg, "f.dcimg", "a Hamamatsu DCIMG file"),
-        (_jpeg, "f.jpg", "a JPEG image"),
         (_mhd, "f.mhd", "a MetaImage header"),
         (_fits, "f.fits", "a FITS file"),
     ],
 )
 def test_image_formats_not_read_are_named_not_taken_for_raw_frames(tmp_path, writer, name, what):
-    """A JPEG a viewer exported (lossy), a MetaImage header, a FITS file: none is read (PNG and DICOM
-    are: tests/test_io_clinical.py),
+    """A MetaImage header, a FITS file, a DCIMG: none is read (PNG, DICOM, JPEG and JPEG 2000
+    are: tests/test_io_clinical.py, tests/test_io_codecs.py),
     and each is named in one line rather than read as headerless raw ("pass shape=", which would
     take its header for pixels). format="raw" still reads the bytes for whoever means it."""
     path = tmp_path / name

@@ -271,6 +271,15 @@ def test_png_and_dicom_example(tmp_path, monkeypatch):
     assert ns["dx"].meta["bit_depth"] == 12 and abs(ns["dx"].meta["pixel_size_mm"] - 0.139) < 1e-12
 
 
+def test_compressed_radiographs_example(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    exec(compile(_block("#### Compressed radiographs"), "README.md", "exec"), ns)
+    counts = ns["counts"]
+    np.testing.assert_array_equal(ns["j2k"].data[0], counts)
+    np.testing.assert_array_equal(ns["dx"].data, np.stack([counts, 4095 - counts]))
+
+
 def test_make_test_worker_count_is_the_one_pytest_is_given():
     """The README's "The two commands" said six pytest-xdist workers after addopts had moved to eight."""
     import tomllib

@@ -31,6 +31,7 @@ from radiokit.io._atomic import (
     remove_replaced,
 )
 from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, human_bytes, memory_budget, parse_size
+from radiokit.io._codecs import LossyWarning
 from radiokit.io._experiment import (
     C7942_PIXEL_SIZE_MM,
     PIXEL_SIZE_RANGE_M,
@@ -77,6 +78,7 @@ __all__ = [
     "InputErrors",
     "BitDepthWarning",
     "HalfFloatWarning",
+    "LossyWarning",
     "bit_depth_cause",
     "atomic_path",
     "atomic_dir",

@@ -17,6 +17,7 @@ import numpy as np
 from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
+from radiokit.io._codecs import check_dicom_proportion, compressed_frame, compressed_syntaxes, say_lossy_dicom
 from radiokit.io._experiment import usable_pixel_sizes
 
 
@@ -209,10 +210,11 @@ def decode_png(path, header: dict) -> np.ndarray:
 
 # -- DICOM ----------------------------------------------------------------------------------------
 def _decodable_syntaxes() -> dict:
-    """The transfer syntaxes pydicom decodes with nothing beyond itself and numpy: uncompressed
-    (little and big endian, deflated) and RLE Lossless. Others (JPEG, JPEG-LS, JPEG 2000, HTJ2K)
-    need plugins that may or may not be installed: refused by name whichever are, so that a file
-    reads the same on every machine (and JPEG baseline is lossy, as a JPEG file is)."""
+    """The transfer syntaxes read: those pydicom decodes with nothing beyond itself and numpy
+    (uncompressed, little and big endian, deflated; RLE Lossless), and JPEG, JPEG-LS, JPEG 2000
+    and HTJ2K, decoded by imagecodecs (a dependency: :mod:`radiokit.io._codecs`), never by
+    whichever pydicom plugins happen to be installed, so that a file reads the same on every
+    machine. Others (JPEG 2000 multi-component, JPIP, MPEG, HEVC) are refused by name."""
     from pydicom import uid
 
     return {
@@ -221,7 +223,7 @@ def _decodable_syntaxes() -> dict:
         uid.ExplicitVRBigEndian: "uncompressed",
         uid.DeflatedExplicitVRLittleEndian: "deflated",
         uid.RLELossless: "RLE Lossless",
-    }
+    } | dict.fromkeys(compressed_syntaxes(), "compressed")
 
 
 def _number(value, default):
@@ -262,7 +264,7 @@ def _decodable_syntax(path, ds):
         raise FormatError(
             path,
             f"a DICOM file compressed as {syntax.name} ({syntax}){lossy}, which radiokit does not decode: it reads "
-            "uncompressed, deflated and RLE Lossless DICOM; decompress it (gdcmconv --raw, or dcmdjpeg/dcmdjp2k)",
+            "uncompressed, deflated, RLE, JPEG, JPEG-LS, JPEG 2000 and HTJ2K DICOM; decompress it (gdcmconv --raw)",
         )
     return syntax
 
@@ -353,6 +355,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
     _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
+    if syntax in compressed_syntaxes():
+        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
     slope, intercept = (
         _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
     )
@@ -382,6 +386,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
         _say_inverted(path)
     meta.update(_dicom_pitch(path, ds))
+    if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
+        meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
     return ds, geometry, meta
 
@@ -394,6 +400,8 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     declare, and its frames are judged as decoded."""
     from pydicom.uid import RLELossless
 
+    if syntax in compressed_syntaxes():  # encapsulated: each frame's codestream is checked before decoding
+        return
     if syntax == RLELossless:
         # PackBits encodes at most 128 bytes in 2: a file under 1/64 of what it declares cannot
         # hold it (its fragments' lengths would need the pixels read to sum)
@@ -473,7 +481,9 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     integers and the values fit int32, else float64 (exact for every 32-bit count)."""
     from pydicom.pixels import pixel_array
 
-    if geometry["n"] > 1:
+    if ds.file_meta.TransferSyntaxUID in compressed_syntaxes():
+        stored = compressed_frame(path, ds, geometry, i)
+    elif geometry["n"] > 1:
         stored = pixel_array(ds, index=i)
     else:
         stored = pixel_array(ds)

@@ -28,6 +28,17 @@ from radiokit.io._clinical import (
     png_header,
     rescaled_dtype,
 )
+from radiokit.io._codecs import (
+    J2K_MAGIC,
+    JP2_MAGIC,
+    JPEG_MAGIC,
+    check_file_header,
+    decode_file,
+    describe,
+    file_header,
+    out_dtype,
+    warn_lossy,
+)
 from radiokit.io._experiment import (
     _LENGTH_UNITS_M,
     ENTRY,
@@ -77,7 +88,7 @@ from radiokit.io._tiff_ifds import check_tiff_pages, no_pages_why
 
 __all__ = ["FrameSource", "open_frames", "read", "iter_frames", "sniff", "FORMATS"]
 
-FORMATS = ("raw", "tiff", "itex", "hdf5", "png", "dicom")
+FORMATS = ("raw", "tiff", "itex", "hdf5", "png", "jpeg", "jpeg2000", "dicom")
 #: the group ``radiokit.calibrate.Calibration.save`` writes by default
 CALIBRATION = "calibration"
 DXCHANGE = "exchange"  # Data Exchange's group: data, data_dark, data_white
@@ -96,6 +107,15 @@ _EXTENSIONS = {
     ".bin": "raw",
     ".dat": "raw",
     ".png": "png",
+    ".jpg": "jpeg",
+    ".jpeg": "jpeg",
+    ".jls": "jpeg",  # JPEG-LS: JPEG's markers, its own frame header (SOF55)
+    ".jp2": "jpeg2000",
+    ".jpx": "jpeg2000",
+    ".j2k": "jpeg2000",
+    ".j2c": "jpeg2000",
+    ".jph": "jpeg2000",  # HTJ2K
+    ".jhc": "jpeg2000",
     ".dcm": "dicom",
     ".dicom": "dicom",
 }
@@ -104,6 +124,8 @@ _NO_SIGNATURE = {
     "itex": "wrong magic {head!r}: an ITEX .img starts with b'IM'",
     "hdf5": "no HDF5 signature: not an HDF5 file, or truncated",
     "png": "no PNG signature (b'\\x89PNG\\r\\n\\x1a\\n'): not a PNG file, or truncated",
+    "jpeg": "no JPEG signature (b'\\xff\\xd8\\xff'): not a JPEG file, or truncated",
+    "jpeg2000": "no JPEG 2000 signature (a JP2 signature box, or a codestream's b'\\xffO\\xffQ'): not a JPEG 2000 file, or truncated",
     # (one without its preamble is read where a file meta or dataset element comes first: sniff)
     "dicom": "no DICOM signature (b'DICM' at byte 128), nor a DICOM element at byte 0: not a DICOM file, or truncated",
 }
@@ -130,7 +152,6 @@ _FOREIGN = (
     (0, b"MATLAB 5", "a MATLAB .mat file in its v5/v7 format (save's default)", "save it with -v7.3, which is HDF5"),
     # HCImage's and DCAM-API's own format: its header, session and frame footers read as pixels
     (0, b"DCIMG", "a Hamamatsu DCIMG file", "export its frames from HCImage as TIFF"),
-    (0, b"\xff\xd8\xff", "a JPEG image", "use the frames as the detector software saved them (JPEG is lossy)"),
     (0, b"SIMPLE  =", "a FITS file", "save the frames as TIFF"),
     (0, b"NRRD000", "an NRRD file", "save the frames as TIFF"),
     (0, b"ObjectType", "a MetaImage header", _MHD),
@@ -174,6 +195,19 @@ def _check_file(path) -> None:
         raise FormatError(path, "file is empty")
 
 
+def _image_signature(start: bytes) -> str | None:
+    """The image format whose signature ``start`` (a file's first 132 bytes) opens with, if any."""
+    if start[:8] == PNG_MAGIC:
+        return "png"
+    if start[128:132] == b"DICM":
+        return "dicom"
+    if start[:3] == JPEG_MAGIC:  # JPEG, JPEG-LS
+        return "jpeg"
+    if start[:4] == J2K_MAGIC or start[:12] == JP2_MAGIC:
+        return "jpeg2000"
+    return None
+
+
 def sniff(path) -> str:
     """Name the format of ``path`` from its first bytes, falling back to its extension.
 
@@ -204,8 +238,8 @@ def sniff(path) -> str:
     if head == _HDF5_MAGIC or (len(head) == 8 and h5py.is_hdf5(path)):
         return "hdf5"
     ext = _EXTENSIONS.get(path.suffix.lower())
-    if ext != "raw" and (head == PNG_MAGIC or start[128:132] == b"DICM"):
-        return "png" if head == PNG_MAGIC else "dicom"
+    if ext != "raw" and (found := _image_signature(start)):  # (a .raw frame's first pixels may read so: below)
+        return found
     if ext == "dicom" and dicom_bare_start(start):
         return "dicom"  # no preamble: a file meta or dataset element first, as pydicom's force=True reads it
     if head[:2] == b"IM" and ext in (None, "itex"):
@@ -337,9 +371,14 @@ class FrameSource:
         _check_file(self.path)
         format = format or sniff(self.path)
         if dataset and format != "hdf5":  # h5py's "file signature not found" named neither
-            what = {"tiff": "a TIFF", "itex": "an ITEX .img", "png": "a PNG", "dicom": "a DICOM file"}.get(
-                format, "not HDF5 (no HDF5 signature)"
-            )
+            what = {
+                "tiff": "a TIFF",
+                "itex": "an ITEX .img",
+                "png": "a PNG",
+                "jpeg": "a JPEG",
+                "jpeg2000": "a JPEG 2000 file",
+                "dicom": "a DICOM file",
+            }.get(format, "not HDF5 (no HDF5 signature)")
             raise FormatError(self.path, f"dataset= (--dataset) is for HDF5 files; this file is {what}")
         if format != "raw" and hints.keys() - _ANY_FORMAT_HINTS:
             # Geometry hints only make sense for headerless data.
@@ -456,6 +495,33 @@ class FrameSource:
         if frame is None:
             frame = decode_png(self.path, self._png)
         return frame.astype(self.dtype, copy=False)
+
+    def _open_jpeg(self, dataset=None, **hints):
+        # its SOF or SIZ against the budget before the codec allocates it (a 2 KB JPEG may declare 60000 x 60000)
+        with open(self.path, "rb") as fh:
+            if _image_signature(fh.read(132)) != self.format:  # format="jpeg" given for another file
+                raise FormatError(self.path, _NO_SIGNATURE[self.format])
+        self._codestream = header = file_header(self.path)
+        check_file_header(self.path, header, self._budget)
+        self.n, self.frame_shape, self.dtype = 1, (header["height"], header["width"]), out_dtype(header)
+        self.meta.update(n=1, rows=header["height"], cols=header["width"], dtype=str(self.dtype))
+        self.meta["compression"] = describe(header)
+        # a 12-bit JPEG's (or a 10-bit JPEG 2000's) counts in 16-bit words: the saturation judgement's top
+        self.bits = header["precision"] if header["precision"] not in (8, 16) and not header["signed"] else None
+        if self.bits is not None:
+            self.meta["bit_depth"] = self.bits
+        if header["lossless"] is False:
+            warn_lossy(self.path, f"a {describe(header)} image")
+        if header["components"] > 1:  # a colour image is judged on its channels now, as a PNG's
+            self._jpeg_frame = decode_file(self.path, header)
+
+    def _read_jpeg(self, i):
+        frame = getattr(self, "_jpeg_frame", None)
+        if frame is None:
+            frame = decode_file(self.path, self._codestream)
+        return frame.astype(self.dtype, copy=False)
+
+    _open_jpeg2000, _read_jpeg2000 = _open_jpeg, _read_jpeg
 
     def _open_dicom(self, dataset=None, **hints):
         self._dicom, self._dicom_geo, meta = open_dicom(self.path, self._budget)

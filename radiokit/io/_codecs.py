@@ -1,0 +1,412 @@
+"""JPEG (baseline, extended 12-bit, lossless), JPEG-LS and JPEG 2000 (HTJ2K included) codestreams,
+in a file of their own (.jpg, .jls, .j2k, .jp2) or a compressed DICOM's frames, decoded by imagecodecs.
+
+A codestream states its own image size (JPEG's SOF marker, ITU T.81 B.2.2; JPEG 2000's SIZ,
+T.800 A.5.1), and its decoder allocates that size whatever the container says: a 2 KB JPEG may
+declare 60000 x 60000. The header is read first and held to the memory budget (a file), or to the
+DICOM's own Rows x Columns (a frame), before anything is decoded.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+
+from radiokit._names import shown
+from radiokit.errors import FormatError
+from radiokit.io._budget import check_budget, check_proportion
+
+JPEG_MAGIC = b"\xff\xd8\xff"
+J2K_MAGIC = b"\xff\x4f\xff\x51"  # SOC then SIZ: a bare JPEG 2000 codestream (.j2k, .j2c, .jph)
+JP2_MAGIC = b"\x00\x00\x00\x0cjP  \r\n\x87\n"  # the JP2 signature box (.jp2, .jpx, .jph)
+
+
+class LossyWarning(UserWarning):
+    """The pixels were compressed lossily: what is read is the codec's approximation, not the counts."""
+
+
+#: JPEG's frame headers (T.81 table B.1; JPEG-LS's SOF55, T.87): their process, and whether it is lossless
+_SOF = {
+    0xC0: ("baseline", False),
+    0xC1: ("extended", False),
+    0xC2: ("progressive", False),
+    0xC3: ("lossless", True),
+    0xC5: ("differential sequential", False),
+    0xC6: ("differential progressive", False),
+    0xC7: ("differential lossless", True),
+    0xC9: ("extended, arithmetic", False),
+    0xCA: ("progressive, arithmetic", False),
+    0xCB: ("lossless, arithmetic", True),
+    0xCD: ("differential sequential, arithmetic", False),
+    0xCE: ("differential progressive, arithmetic", False),
+    0xCF: ("differential lossless, arithmetic", True),
+    0xF7: ("JPEG-LS", True),
+}
+
+
+def _jpeg_header(read, size: int) -> dict:
+    """The frame header (SOF) of a JPEG or JPEG-LS stream read through ``read(offset, n)``, and
+    for JPEG-LS its first scan's NEAR (0: lossless). Markers are walked by their lengths up to
+    the first scan: APPn segments (EXIF, ICC) may come first, each up to 64 KB."""
+    pos, out = 2, None
+    while pos + 4 <= size:
+        b = read(pos, 4)
+        if b[0] != 0xFF:
+            raise ValueError(f"no JPEG marker at byte {pos}")
+        marker = b[1]
+        if marker == 0xFF:  # a fill byte before a marker
+            pos += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # TEM, RSTn: no length
+            pos += 2
+            continue
+        if marker == 0xD9:
+            break
+        length = int.from_bytes(b[2:4], "big")
+        if length < 2:
+            raise ValueError(f"a JPEG segment of length {length} at byte {pos}")
+        if marker in _SOF and out is None:
+            p, h, w, c = (lambda s: (s[0], int.from_bytes(s[1:3], "big"), int.from_bytes(s[3:5], "big"), s[5]))(
+                read(pos + 4, 6)
+            )
+            process, lossless = _SOF[marker]
+            out = {"codec": "jpegls" if marker == 0xF7 else "jpeg", "process": process, "lossless": lossless}
+            out.update(height=h, width=w, components=c, precision=p, signed=False)
+        elif marker == 0xDA:
+            if out is not None:
+                out["scan"] = pos
+            if out is not None and out["codec"] == "jpegls":
+                scan = read(pos + 4, length - 2)
+                near = scan[1 + 2 * scan[0]] if len(scan) > 1 + 2 * scan[0] else 0
+                out["lossless"], out["near"] = near == 0, near
+            break
+        pos += 2 + length
+    if out is None:
+        raise ValueError("no frame header (SOF marker) before its first scan")
+    return out
+
+
+def _j2k_header(read, start: int, size: int) -> dict:
+    """A JPEG 2000 codestream's SIZ (image size, components, their precision and sign) and its
+    COD's wavelet: the irreversible 9/7 is lossy; the reversible 5/3 is lossless where every
+    quality layer was kept (which no header says)."""
+    siz = read(start, 43)
+    if siz[:4] != J2K_MAGIC or len(siz) < 43:
+        raise ValueError("no JPEG 2000 codestream (SOC, SIZ) where its header should be")
+    be = lambda a, b: int.from_bytes(siz[a:b], "big")
+    width, height = be(8, 12) - be(16, 20), be(12, 16) - be(20, 24)
+    ssiz = siz[42]
+    out = {"codec": "jpeg2k", "process": "JPEG 2000", "lossless": None, "width": width, "height": height}
+    out.update(components=be(40, 42), precision=(ssiz & 0x7F) + 1, signed=bool(ssiz & 0x80))
+    out["htj2k"] = bool(be(6, 8) & 0x4000)  # Rsiz's bit 14: HTJ2K (T.814)
+    pos = start + 4 + be(4, 6)  # past SIZ, through the main header's marker segments to COD
+    while pos + 4 <= size:
+        b = read(pos, 4)
+        if b[0] != 0xFF or b[1] == 0x90:  # SOT: the first tile, the main header over
+            out["scan"] = pos
+            break
+        if b[1] == 0x52:  # COD: its SPcod's last byte is the wavelet (T.800 table A.20)
+            cod = read(pos + 4, 10)
+            if len(cod) == 10:
+                out["lossless"] = cod[9] == 1
+        pos += 2 + int.from_bytes(b[2:4], "big")
+    if out["lossless"] is not None:
+        out["process"] += " (reversible 5/3)" if out["lossless"] else " (irreversible 9/7: lossy)"
+    return out
+
+
+def _jp2_codestream(read, size: int) -> int:
+    """Where a JP2 file's contiguous codestream box (jp2c) starts, its boxes walked by their
+    lengths (ISO 15444-1 I.4)."""
+    pos = 0
+    while pos + 8 <= size:
+        head = read(pos, 16)
+        length, kind = int.from_bytes(head[:4], "big"), head[4:8]
+        skip = 8
+        if length == 1:
+            length, skip = int.from_bytes(head[8:16], "big"), 16
+        elif length == 0:
+            length = size - pos
+        if kind == b"jp2c":
+            return pos + skip
+        if length < skip:
+            raise ValueError(f"a JP2 box of length {length} at byte {pos}")
+        pos += length
+    raise ValueError("no codestream box (jp2c) in the JP2 file")
+
+
+def codestream_header(read, size: int) -> dict:
+    """The image a JPEG, JPEG-LS, JPEG 2000 or JP2 stream declares, from its header alone:
+    ``codec`` (jpeg, jpegls, jpeg2k), ``process``, ``lossless`` (True, False, or None where its
+    header cannot say), ``width``, ``height``, ``components``, ``precision``, ``signed``.
+    ``ValueError`` where the header is not one."""
+    head = read(0, 12)
+    if head[:3] == JPEG_MAGIC:
+        return _jpeg_header(read, size)
+    if head[:4] == J2K_MAGIC:
+        return _j2k_header(read, 0, size)
+    if head[:12] == JP2_MAGIC:
+        return _j2k_header(read, _jp2_codestream(read, size), size)
+    raise ValueError("neither a JPEG nor a JPEG 2000 stream (no SOI or SOC marker first)")
+
+
+def bytes_header(buf: bytes) -> dict:
+    """:func:`codestream_header` of a stream in memory (a DICOM frame)."""
+    return codestream_header(lambda pos, n: bytes(buf[pos : pos + n]), len(buf))
+
+
+def file_header(path) -> dict:
+    """:func:`codestream_header` of a file, its markers read where they are, nothing decoded;
+    refused in one line where the header is not one."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as fh:
+
+        def read(pos, n):
+            fh.seek(pos)
+            return fh.read(n)
+
+        try:
+            return codestream_header(read, size)
+        except (ValueError, IndexError) as exc:
+            raise FormatError(path, f"a JPEG or JPEG 2000 file whose header cannot be read ({exc}): corrupt") from None
+
+
+def out_dtype(header: dict) -> np.dtype:
+    """What the decoder gives: a byte a sample up to 8 bits, two up to 16."""
+    kind = "i" if header["signed"] else "u"
+    return np.dtype(f"{kind}{1 if header['precision'] <= 8 else 2}")
+
+
+def decoded_bytes(header: dict) -> int:
+    """What decoding allocates: the output, and for JPEG 2000 OpenJPEG's own image of 32-bit
+    samples beside it; a multi-scan (progressive) JPEG keeps every DCT coefficient (2 bytes)."""
+    samples = header["width"] * header["height"] * header["components"]
+    extra = 4 if header["codec"] == "jpeg2k" else 2 if "progressive" in header["process"] else 0
+    return samples * (out_dtype(header).itemsize + extra)
+
+
+def describe(header: dict) -> str:
+    """``JPEG baseline, 8-bit, 1 component(s), lossy`` as ``info`` shows it."""
+    what = {"jpeg": "JPEG", "jpegls": "JPEG-LS", "jpeg2k": "HTJ2K" if header.get("htj2k") else "JPEG 2000"}
+    process = header["process"] if header["codec"] != "jpegls" else f"NEAR {header.get('near', 0)}"
+    if header["codec"] == "jpeg2k":
+        process = process.replace("JPEG 2000", "").strip(" ()") or "wavelet not stated"
+    loss = {True: "lossless", False: "lossy", None: "lossless or not: its header does not say"}[header["lossless"]]
+    sign = "signed " if header["signed"] else ""
+    return f"{what[header['codec']]} {process}, {sign}{header['precision']}-bit, {header['components']} component(s), {loss}"
+
+
+def decode(buf, header: dict) -> np.ndarray:
+    """The stream's pixels by imagecodecs, as the header said: libjpeg-turbo for every JPEG process
+    (8- and 12-bit DCT, lossless to 16 bits), its lossless-JPEG decoder where libjpeg-turbo refuses
+    one (an older build, a predictor or precision it lacks), CharLS for JPEG-LS, OpenJPEG for JPEG
+    2000 and HTJ2K."""
+    import imagecodecs
+
+    if header["codec"] == "jpegls":
+        return imagecodecs.jpegls_decode(buf)
+    if header["codec"] == "jpeg2k":
+        return imagecodecs.jpeg2k_decode(buf)
+    try:
+        return imagecodecs.jpeg8_decode(buf)
+    except Exception as exc:
+        # libjpeg-turbo before 3.0 has no lossless process ("Unsupported JPEG process: SOF type
+        # 0xc3"); any other error stands (ljpeg_decode returns a corrupt stream's image silently)
+        if not header["lossless"] or "Unsupported JPEG process" not in str(exc):
+            raise
+        return imagecodecs.ljpeg_decode(buf)
+
+
+def check_complete(path, buf, header: dict, where: str = "") -> None:
+    """Refuse a stream cut short: JPEG, JPEG-LS and JPEG 2000 all end at an EOI (EOC) marker,
+    0xFFD9, which their coded data cannot hold (byte stuffing), so it must come after the first
+    scan (tile). Why: libjpeg-turbo decodes a truncated JPEG without a word, its missing rows
+    grey. (Damage inside the coded data, its length kept, is not found: JPEG has no checksum.)"""
+    if bytes(buf).rfind(b"\xff\xd9", header.get("scan", 0)) < 0:
+        raise FormatError(path, f"{where}a {describe(header)} stream without its end marker (0xFFD9): truncated")
+
+
+def check_decoded(path, data: np.ndarray, header: dict, where: str = "") -> None:
+    """Refuse a decode whose image is not the one the header declared (a corrupt stream that the
+    decoder filled otherwise)."""
+    shape = (header["height"], header["width"]) + ((header["components"],) if header["components"] > 1 else ())
+    if data.shape != shape:
+        raise FormatError(
+            path, f"{where}decoded as {data.shape}, where its header declares {shape}: corrupt or truncated"
+        )
+
+
+def warn_lossy(path, what: str) -> None:
+    """Say once per file (the command line shows one per path) that the values are a lossy codec's."""
+    said = LossyWarning(
+        f"{shown(path)}: {what}: its values are a lossy codec's approximation of the counts, not the counts; "
+        "quantitative contrast and noise measurements on them are affected"
+    )
+    said.path = str(path)
+    warnings.warn(said, stacklevel=5)
+
+
+def check_file_header(path, header: dict, budget) -> None:
+    """Refuse, before decoding, a file declaring more than the budget, a colour space of neither
+    one nor three components, or samples over 16 bits."""
+    w, h, c, p = (header[k] for k in ("width", "height", "components", "precision"))
+    if w <= 0 or h <= 0 or not 1 <= p:  # (a JPEG 2000 image offset past its own extent is negative)
+        raise FormatError(
+            path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
+        )
+    what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
+    check_budget(path, decoded, what, budget)
+    # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
+    codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
+    check_proportion(path, what, decoded, decoded, os.path.getsize(path), codec, budget)
+    if c not in (1, 3):
+        raise FormatError(
+            path, f"a {describe(header)} image: {c} components (CMYK, or grey with alpha), not one channel of counts"
+        )
+    if p > 16:
+        raise FormatError(path, f"a {describe(header)} image: samples of {p} bits, where radiokit reads up to 16")
+
+
+def grey(path, data: np.ndarray, header: dict) -> np.ndarray:
+    """One channel: a three-component image whose channels are equal everywhere is a greyscale
+    radiograph saved as colour (a grey JPEG's chroma is exactly neutral, and decodes to R = G =
+    B), read as one, as a PNG's is; any other is refused (a viewer's colour rendering is no counts)."""
+    if data.ndim == 2:
+        return data
+    if all(np.array_equal(data[..., 0], data[..., k]) for k in range(1, data.shape[2])):
+        return np.ascontiguousarray(data[..., 0])
+    raise FormatError(
+        path,
+        f"a colour {describe(header)} image whose channels differ: a viewer's colour rendering, not one channel "
+        "of counts; export the radiograph as greyscale",
+    )
+
+
+def decode_file(path, header: dict) -> np.ndarray:
+    """A JPEG or JPEG 2000 file's one greyscale image, in one line naming the file where it cannot be."""
+    buf = np.fromfile(path, np.uint8)
+    check_complete(path, buf.tobytes(), header)
+    try:
+        data = decode(buf, header)
+    except Exception as exc:  # imagecodecs' codec errors: one class per codec
+        raise FormatError(
+            path, f"a {describe(header)} image that cannot be decoded: {' '.join(str(exc).split())}"
+        ) from None
+    check_decoded(path, data, header)
+    return grey(path, data, header)
+
+
+# -- a compressed DICOM's frames ------------------------------------------------------------------
+def compressed_syntaxes() -> dict:
+    """The compressed transfer syntaxes decoded here, each with whether it is lossy: True (JPEG's
+    DCT processes), None (it permits lossy compression: JPEG-LS near-lossless of NEAR 0 is
+    lossless, as is JPEG 2000 of the reversible wavelet with every layer kept), False (lossless
+    only). JPEG 2000 Part 2 multi-component, JPIP, MPEG and HEVC stay refused."""
+    from pydicom import uid
+
+    return {
+        uid.JPEGBaseline8Bit: True,
+        uid.JPEGExtended12Bit: True,
+        uid.JPEGLossless: False,
+        uid.JPEGLosslessSV1: False,
+        uid.JPEGLSLossless: False,
+        uid.JPEGLSNearLossless: None,
+        uid.JPEG2000Lossless: False,
+        uid.JPEG2000: None,
+        uid.HTJ2KLossless: False,
+        uid.HTJ2KLosslessRPCL: False,
+        uid.HTJ2K: None,
+    }
+
+
+def check_dicom_proportion(path, syntax, n: int, rows: int, cols: int, dtype, budget) -> None:
+    """Refuse, before decoding, a compressed DICOM whose header declares frames out of all
+    proportion to the file's bytes (:func:`check_proportion`): each frame's codestream must be the
+    declared image, so a 4 KB file declaring 60000 x 60000 would otherwise be decoded, its few
+    bytes taken for 7 GB of pixels, within a large machine's budget."""
+    frame = rows * cols * np.dtype(dtype).itemsize
+    what = f"its header's {n} frame(s) of {rows}x{cols} {np.dtype(dtype)}"
+    check_proportion(path, what, n * frame, frame, os.path.getsize(path), syntax.name, budget)
+
+
+def say_lossy_dicom(path, ds, syntax) -> str | None:
+    """Warn (once per file) where a compressed DICOM's pixels are or may be a lossy codec's: its
+    syntax is lossy or permits it, or LossyImageCompression says they were once (a lossless
+    re-encoding of lossy pixels keeps their loss). What was said is returned for ``meta``."""
+    lossy = compressed_syntaxes().get(syntax, False)
+    said = str(ds.get("LossyImageCompression", "")).strip() == "01"
+    if lossy is False and not said:
+        return None
+    what = f"a DICOM file compressed as {syntax.name} ({syntax})"
+    if lossy is None and not said:
+        what += ", a syntax that permits lossy compression"
+    elif said and not lossy:
+        what += ", whose LossyImageCompression says its pixels were lossy-compressed before"
+    warn_lossy(path, what)
+    return what
+
+
+def _frame_bytes(path, ds, n: int, i: int) -> bytes:
+    """Frame ``i``'s codestream: its fragments joined, found by the Basic (or Extended) Offset
+    Table, else one fragment a frame, else by the JPEG end-of-image markers (pydicom's rules)."""
+    from pydicom.encaps import get_frame
+
+    offsets = None
+    if "ExtendedOffsetTable" in ds and "ExtendedOffsetTableLengths" in ds:
+        offsets = (ds.ExtendedOffsetTable, ds.ExtendedOffsetTableLengths)
+    try:
+        return get_frame(ds.PixelData, i, number_of_frames=n, extended_offsets=offsets)
+    except Exception as exc:  # pydicom's ValueError, or a struct error on a cut item
+        raise FormatError(
+            path, f"frame {i}'s encapsulated fragments cannot be read: {' '.join(str(exc).split())}"
+        ) from None
+
+
+def _check_frame_header(path, header: dict, geometry: dict, i: int) -> None:
+    """Refuse, before decoding, a frame's codestream that is not the image the DICOM header
+    declares: another size (which its decoder would allocate, whatever Rows and Columns say),
+    another number of components, or samples wider than BitsAllocated. A precision other than
+    BitsStored is read (writers put 12-bit counts in 16-bit streams): the values are judged
+    against BitsStored as any DICOM's are."""
+    rows, cols, word = geometry["rows"], geometry["cols"], geometry["dtype"].itemsize * 8
+    stated = (header["height"], header["width"], header["components"])
+    if stated != (rows, cols, 1) or header["precision"] > word:
+        raise FormatError(
+            path,
+            f"frame {i} is a {describe(header)} image of {header['height']}x{header['width']}, where the DICOM header "
+            f"declares {rows}x{cols} of 1 sample in {word}-bit words: not the image it describes",
+        )
+
+
+def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
+    """Frame ``i`` of a compressed DICOM, decoded, as stored (the type of BitsAllocated and
+    PixelRepresentation): signed values that the codec returns as unsigned patterns of its
+    precision (JPEG, JPEG-LS) are sign-extended from it."""
+    buf = _frame_bytes(path, ds, geometry["n"], i)
+    try:
+        header = bytes_header(buf)
+    except (ValueError, IndexError) as exc:
+        raise FormatError(path, f"frame {i}'s codestream header cannot be read ({exc}): corrupt") from None
+    _check_frame_header(path, header, geometry, i)
+    check_complete(path, buf, header, f"frame {i} is ")
+    syntax = ds.file_meta.TransferSyntaxUID
+    if header["lossless"] is False and compressed_syntaxes().get(syntax) is False and not geometry.get("mislabel_said"):
+        geometry["mislabel_said"] = True  # once per open file, not once per frame
+        # a lossless syntax's label on a lossy stream (a writer's mistake): the stream is what was stored
+        warn_lossy(
+            path, f"its frames are {describe(header)} streams, though its transfer syntax {syntax.name} says lossless"
+        )
+    try:
+        data = decode(buf, header)
+    except Exception as exc:  # imagecodecs' codec errors: one class per codec
+        raise FormatError(
+            path, f"frame {i} ({describe(header)}) cannot be decoded: {' '.join(str(exc).split())}"
+        ) from None
+    check_decoded(path, data, header, f"frame {i} ")
+    dtype = geometry["dtype"].newbyteorder("=")
+    if dtype.kind == "i" and data.dtype.kind == "u":
+        top = 1 << (header["precision"] - 1)
+        data = (data.astype(np.int64) ^ top) - top
+    return data.astype(dtype, copy=False)
