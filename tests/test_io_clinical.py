@@ -552,3 +552,50 @@ def test_an_rle_frame_that_does_not_decode_is_one_line(tmp_path):
     with pytest.raises(FormatError, match=r"rle\.dcm: frame 0 cannot be decoded") as info:
         read(path)
     assert "\n" not in str(info.value)
+
+
+def _deflate_block_types(stream: bytes) -> set:
+    """The BTYPE of each deflate block of a zlib ``stream`` made of stored blocks (0) up to its
+    first other block: walking a stored block's LEN is all it takes, no Huffman decoding."""
+    pos, types = 2, set()  # past the zlib header
+    while True:
+        head = stream[pos]
+        btype = (head >> 1) & 3
+        types.add(btype)
+        if btype != 0:
+            return types
+        (length,) = struct.unpack_from("<H", stream, pos + 1)
+        pos += 5 + length
+        if head & 1:  # BFINAL
+            return types
+
+
+def _idat_stream(png: bytes) -> bytes:
+    """A PNG's IDAT chunks' data, in order: its zlib stream."""
+    pos, stream = 8, b""
+    while pos < len(png):
+        (length,) = struct.unpack_from(">I", png, pos)
+        if png[pos + 4 : pos + 8] == b"IDAT":
+            stream += png[pos + 8 : pos + 8 + length]
+        pos += 12 + length
+    return stream
+
+
+def test_a_png_s_pixels_are_inflated_once(tmp_path, monkeypatch):
+    """IDAT's stream is inflated by radiokit's check (it ends where the image does) and then not
+    again: OpenCV is handed the inflated rows as stored deflate blocks, which libpng copies.
+    Why: the check and libpng each ran the whole Huffman decode (benchmarks/README.md,
+    bench_png_read.py). The values are still libpng's unfiltering of the file's rows."""
+    import cv2
+
+    image = (_texture((300, 400)) >> 12).astype(np.uint16) + 1000  # a compressible one: random words are stored
+    path = _png(tmp_path / "once.png", image)
+    handed = []
+    decode = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda buf, flags: handed.append(bytes(buf)) or decode(buf, flags))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    (png,) = handed
+    assert _deflate_block_types(_idat_stream(path.read_bytes())) != {0}  # the file's: Huffman-coded
+    streams = _idat_stream(png)
+    assert _deflate_block_types(streams) == {0}
+    assert len(zlib.decompress(streams)) == 300 * (1 + 400 * 2)  # a filter byte and 400 samples a row

@@ -100,9 +100,6 @@ def check_png(path, header: dict, budget) -> None:
         )
 
 
-#: the chunks that make a PNG's pixels; the rest (text, ICC profiles, gamma, APNG's frames) are
-#: dropped before OpenCV sees the file (:func:`decode_png`)
-_PIXEL_CHUNKS = (b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND")
 #: Adam7's passes: (first row, first column, row step, column step)
 _ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
 _PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
@@ -122,20 +119,26 @@ def png_pixel_bytes(header: dict, interlaced: bool) -> int:
     return total
 
 
-def _check_idat_stream(path, header: dict, interlaced: bool, idat) -> None:
-    """Refuse pixel data whose zlib stream ends (or breaks) before the image does. Why: a cut
-    stream inside a chunk whose CRC is right passed :func:`check_png_chunks`, and libpng printed
-    "libpng error: Not enough image data" before the one line. Inflated a block at a time,
-    counted and dropped: no more memory than a block."""
-    need, got = png_pixel_bytes(header, interlaced), 0
+def _inflated_idat(path, header: dict, interlaced: bool, idat) -> bytearray:
+    """IDAT's zlib stream inflated: the image's filtered rows, exactly :func:`png_pixel_bytes` of
+    them (the header's size, held to the budget before this: a stream inflating to more is cut
+    there, never held). Refused in one line where the stream ends (or breaks) before the image
+    does. Why: a cut stream inside a chunk whose CRC is right passed :func:`check_png_chunks`,
+    and libpng printed "libpng error: Not enough image data" before the one line. Kept, not
+    counted and dropped: :func:`_stored_png` hands them to libpng, so that the stream is
+    Huffman-decoded once (it was twice: benchmarks/README.md, bench_png_read.py)."""
+    need = png_pixel_bytes(header, interlaced)
+    out, got = bytearray(need), 0
     inflate = zlib.decompressobj()
     try:
         for piece in idat:
-            data = inflate.decompress(piece, 1 << 22)
-            got += len(data)
-            while inflate.unconsumed_tail and got < need:
-                data = inflate.decompress(inflate.unconsumed_tail, 1 << 22)
+            data = inflate.decompress(piece, need - got)
+            while data:
+                out[got : got + len(data)] = data
                 got += len(data)
+                if got >= need or not inflate.unconsumed_tail:
+                    break
+                data = inflate.decompress(inflate.unconsumed_tail, need - got)
             if got >= need:
                 break
     except zlib.error as exc:
@@ -144,6 +147,41 @@ def _check_idat_stream(path, header: dict, interlaced: bool, idat) -> None:
         raise FormatError(
             path, f"a PNG whose pixel data ends early: {got} of its image's {need} bytes (truncated or corrupt)"
         )
+    return out
+
+
+#: a stored deflate block's most bytes (its LEN is 16 bits)
+_STORED_BLOCK = 0xFFFF
+
+
+def _stored_png(head: bytes, chunks: list, rows: bytearray) -> np.ndarray:
+    """The PNG libpng is given: the signature and IHDR (``head``), the other pixel ``chunks``
+    (PLTE, tRNS) and one IDAT of ``rows`` as stored deflate blocks (no Huffman coding: libpng's
+    inflate copies them), then IEND; built in one buffer, each block's bytes copied once (with
+    zlib.compress at level 0 and a join, the rows were held three times: 10 MB each of a
+    2240 x 2240 16-bit frame)."""
+    n = len(rows)
+    blocks = max(1, -(-n // _STORED_BLOCK))
+    stream = 2 + 5 * blocks + n + 4  # zlib header, each block's header, the rows, Adler-32
+    pre = b"".join([head, *chunks])
+    out = bytearray(len(pre) + 8 + stream + 4 + 12)
+    out[: len(pre)] = pre
+    at = len(pre)
+    struct.pack_into(">I4s", out, at, stream, b"IDAT")
+    pos = at + 8
+    out[pos : pos + 2] = b"\x78\x01"  # deflate, 32 KiB window, no dictionary (0x7801 % 31 == 0)
+    pos += 2
+    src = memoryview(rows)
+    for k in range(blocks):
+        piece = src[k * _STORED_BLOCK : (k + 1) * _STORED_BLOCK]
+        struct.pack_into("<BHH", out, pos, k == blocks - 1, len(piece), len(piece) ^ 0xFFFF)  # BFINAL, BTYPE 00
+        out[pos + 5 : pos + 5 + len(piece)] = piece
+        pos += 5 + len(piece)
+    struct.pack_into(">I", out, pos, zlib.adler32(src))
+    pos += 4
+    struct.pack_into(">I", out, pos, zlib.crc32(memoryview(out)[at + 4 : pos]))
+    struct.pack_into(">I4sI", out, pos + 4, 0, b"IEND", zlib.crc32(b"IEND"))
+    return np.frombuffer(out, np.uint8)
 
 
 def check_png_chunks(path, buf) -> list:
@@ -180,13 +218,15 @@ def decode_png(path, header: dict) -> np.ndarray:
     view = memoryview(raw)
     spans = check_png_chunks(path, view)
     interlaced = bool(raw[28])  # IHDR's last byte (png_header read its others)
-    _check_idat_stream(path, header, interlaced, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
+    rows = _inflated_idat(path, header, interlaced, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
     # the pixels' chunks alone: libpng inflates text and ICC chunks (a 100 KB zTXt may hold 100 MB)
     # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
     # incorrect sRGB profile"); gamma is a display's business, never applied to the values
-    kept = [view[a:b] for k, a, b in spans if k in _PIXEL_CHUNKS]
-    if len(kept) < len(spans):
-        raw = np.frombuffer(b"".join([bytes(view[:8]), *kept]), np.uint8)
+    head = bytes(view[: spans[0][2]])  # the signature and IHDR (check_png_chunks: IHDR is the first chunk)
+    kept = [bytes(view[a:b]) for k, a, b in spans[1:] if k in (b"PLTE", b"tRNS")]
+    del view, raw  # the file's bytes: not held beside the rows, the PNG built of them and the pixels
+    raw = _stored_png(head, kept, rows)
+    del rows
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
