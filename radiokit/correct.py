@@ -26,7 +26,7 @@ import numpy as np
 from radiokit import _json as strict_json
 from radiokit._names import shown
 from radiokit._threads import pool, threads
-from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, frame_saturation
+from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, declared_range, frame_saturation
 from radiokit.checks import is_number, refuse_masked
 from radiokit.errors import FormatError
 
@@ -408,7 +408,8 @@ def declared_top(cal: Calibration) -> int | None:
     """The top of the ADC the calibration's darks and flats declared (``provenance["bit_depth"]``,
     recorded by :meth:`Calibration.from_frames` from the files' word), None where it was guessed."""
     bits = cal.provenance.get("bit_depth")
-    return (1 << bits) - 1 if type(bits) is int and 1 <= bits <= 16 else None
+    signed = cal.provenance.get("bit_depth_signed") is True  # a signed ADC's: 2**(bits - 1) - 1
+    return declared_range(bits, signed)[1] if type(bits) is int and 1 <= bits <= 16 else None
 
 
 def above_top(cal: Calibration, raw2d, top) -> int:
@@ -436,7 +437,7 @@ def warn_above_top(cal: Calibration, n_pixels: int, n_frames: int, stacklevel=3)
     warnings.warn(
         BitDepthWarning(
             f"{n_pixels} pixels of {n_frames} frame(s) read above {top}, the top of the "
-            f"{cal.provenance['bit_depth']}-bit ADC the calibration's darks and flats declared: a wrong bit or "
+            f"{cal.provenance['bit_depth']}-bit{' signed' if cal.provenance.get('bit_depth_signed') is True else ''} ADC the calibration's darks and flats declared: a wrong bit or "
             "byte order, or another panel's frames (C9730DK/C9732DK are 14-bit); corrected as stored"
         ),
         stacklevel=stacklevel,

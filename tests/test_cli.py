@@ -16,7 +16,7 @@ import pytest
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, run_cli, synthetic
+from conftest import info_items, needs_itex, run_cli, synthetic
 from scipy import ndimage
 
 from radiokit.io import ExperimentWriter, ImageKey, read
@@ -79,7 +79,7 @@ def test_info_itex_shows_where_a_subarray_lies_on_the_sensor(tmp_path):
     (tmp_path / "roi.img").write_bytes(head + pix.tobytes())
     res = run_cli("info", tmp_path / "roi.img")
     assert res.returncode == 0, res.stderr
-    assert "offset     x 200, y 100" in res.stdout, res.stdout
+    assert "offset  x 200, y 100" in info_items(res.stdout), res.stdout
     whole = run_cli("info", ITEX / "photon_counting.img") if ITEX.exists() else None
     assert whole is None or "offset" not in whole.stdout
 

@@ -407,7 +407,12 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         "photometric": photometric,
         "modality": str(ds.get("Modality", "")),
     }
-    if stored < allocated and not signed:
+    if signed:
+        # two's complement in BitsStored bits (pydicom extends the sign): the ADC's range is
+        # -2**(stored - 1)..2**(stored - 1) - 1, whatever the word (radiokit.calibrate.declared_range);
+        # judged as unsigned, a signed 12-bit image's clip at 2047 was never saturated (against 4095)
+        meta["bit_depth"], meta["bit_depth_signed"] = stored, True
+    elif stored < allocated:
         meta["bit_depth"] = stored  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
     if (slope, intercept) != (1, 0):
         # the Modality LUT the file states: values = stored * slope + intercept (value_scaling
