@@ -130,6 +130,13 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
 
 
 def _add_raw_hints(p):
+    # --format with the command's own options: it says how every file is read (a DICOM, a PNG),
+    # and was listed under the raw group, where a reader of anything but raw files never looked
+    p.add_argument(
+        "--format",
+        choices=["raw", "tiff", "itex", "hdf5", "png", "dicom"],
+        help="read the files as this format, skipping detection (default: detected from each file's contents)",
+    )
     g = p.add_argument_group("raw files (headerless)")
     g.add_argument(
         "--preset", help="geometry preset, e.g. c7942, c7942-2x2 (default: from the size where only one fits)"
@@ -140,7 +147,6 @@ def _add_raw_hints(p):
     g.add_argument("--dtype", help="pixel type with --shape, e.g. '<f4' for float32 (default '<u2', 16-bit)")
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
-    g.add_argument("--format", choices=["raw", "tiff", "itex", "hdf5", "png", "dicom"], help="skip format detection")
     g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
