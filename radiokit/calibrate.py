@@ -750,7 +750,10 @@ class Calibration:
         if scaling is None:
             scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
-        given_frames = {"darks": darks, "flats": flats}  # the Frames' files, recorded below
+        # the Frames' files, recorded in the provenance: refused now where it could not be saved
+        given = {"darks": darks, "flats": flats}
+        inputs = _frames_inputs(given, {k: len(v) if hasattr(v, "meta") else 0 for k, v in given.items()})
+        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len(inputs))
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
@@ -785,7 +788,7 @@ class Calibration:
             cal.provenance["bit_depth"] = int(bit_depth)
             if signed:  # (its top 2**(bits - 1) - 1: radiokit.correct.declared_top)
                 cal.provenance["bit_depth_signed"] = True
-        cal.provenance["inputs"] = _frames_inputs(given_frames, {"darks": darks.shape[0], "flats": flats.shape[0]})
+        cal.provenance["inputs"] = inputs
         return cal
 
     @classmethod
@@ -2000,6 +2003,33 @@ class CalibrationInput:
     def record(self) -> dict:
         """This input as the provenance's JSON object."""
         return asdict(self)
+
+
+def refuse_unnameable(where: str, names: dict, n_files: int) -> None:
+    """Refuse dark and flat files more than a calibration's provenance can name: ``names``, its
+    items that name them (``inputs``, and the command's ``dark_files`` and ``flat_files``), whose
+    JSON would pass what radiokit reads back (:data:`radiokit._json.MAX_CHARS`); a ValueError of
+    one line, ``where`` first. The one rule of the command (before it opens a file) and of
+    :meth:`Calibration.from_frames` (before it averages a frame). Why: either made the calibration
+    and then refused its save (review s53rvoff; from an HDF5 dataset's 4 MB name, s54)."""
+    size = len(strict_json.dumps(names))
+    if size > strict_json.MAX_CHARS:
+        raise ValueError(
+            f"{where}: {n_files} dark and flat files would be named in the calibration's provenance in at least "
+            f"{size} characters of JSON, past the {strict_json.MAX_CHARS} radiokit reads back; calibrate from fewer "
+            "files (or datasets of shorter names), or from one HDF5 stack of their frames"
+        )
+
+
+def _named_frames(darks, flats) -> str:
+    """``darks FILE, flats FILE`` for a message on :meth:`Calibration.from_frames`' frames, each
+    named where it is :class:`radiokit.io.Frames` of a file (``the darks``, ``the flats`` else)."""
+
+    def one(kind, frames):
+        path = getattr(frames, "meta", {}).get("path") if isinstance(getattr(frames, "meta", None), dict) else None
+        return f"{kind} {shown(path)}" if path else f"the {kind}"
+
+    return f"{one('darks', darks)}, {one('flats', flats)}"
 
 
 def _frames_inputs(given: dict, counts: dict) -> list[dict]:

@@ -751,14 +751,13 @@ def cmd_calibrate(args) -> int:
 
 def _refuse_unnameable(output, darks, flats) -> None:
     """Refuse, before any file is opened, dark and flat files more than the calibration's
-    provenance can name: its ``dark_files``, ``flat_files`` and ``inputs`` (each file's name as
-    given and resolved, :class:`radiokit.calibrate.CalibrationInput`) judged at their least
-    (no format, dataset, size or time), past what radiokit reads back
-    (:data:`radiokit._json.MAX_CHARS`). Why: ``calibrate`` from ~13 000 files read every frame,
-    then refused the save (review s53rvoff). A few more characters per file (the format, an HDF5
-    dataset's name) are judged exactly at the save, after the reading."""
-    from radiokit._json import MAX_CHARS, dumps
-    from radiokit.calibrate import CalibrationInput
+    provenance can name (:func:`radiokit.calibrate.refuse_unnameable`): its ``dark_files``,
+    ``flat_files`` and ``inputs`` (each file's name as given and resolved,
+    :class:`radiokit.calibrate.CalibrationInput`) judged at their least (no format, dataset, size
+    or time). Why: ``calibrate`` from ~13 000 files read every frame, then refused the save
+    (review s53rvoff). A few more characters per file (the format, an HDF5 dataset's name) are
+    judged exactly at the save, after the reading."""
+    from radiokit.calibrate import CalibrationInput, refuse_unnameable
 
     files = list(dict.fromkeys(map(str, [*darks, *flats])))  # one file in both lists: one record at least
     least = {
@@ -766,13 +765,7 @@ def _refuse_unnameable(output, darks, flats) -> None:
         "flat_files": [str(p) for p in flats],
         "inputs": [CalibrationInput(p, str(Path(p).resolve()), "", size_bytes=0).record() for p in files],
     }
-    size = len(dumps(least))
-    if size > MAX_CHARS:
-        raise ValueError(
-            f"{shown(output)}: not written: {len(darks) + len(flats)} dark and flat files would be named in the "
-            f"calibration's provenance in at least {size} characters of JSON, past the {MAX_CHARS} radiokit reads "
-            "back; calibrate from fewer files, or from one HDF5 stack of their frames"
-        )
+    refuse_unnameable(f"{shown(output)}: not written", least, len(darks) + len(flats))
 
 
 def _calibration_from_files(args, th):

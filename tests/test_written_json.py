@@ -237,3 +237,25 @@ def test_a_calibration_saved_into_a_file_object_names_the_file_its_bytes_are_for
         _calibration(30_000).save(io.BytesIO(), name=out)
     message = str(info.value)
     assert message.startswith(f"{out}: not written: the calibration's provenance"), message
+
+
+def test_from_frames_refuses_frames_its_provenance_could_not_name_before_averaging(tmp_path):
+    """``calibrate`` refuses files its provenance could not name before reading them; the Python
+    way, ``Calibration.from_frames(read(...), read(...))``, averaged them and the save then
+    refused the calibration. Here an HDF5 dataset's name (h5py writes one past the bound: the
+    provenance records the dataset read) is refused at from_frames, in one line naming the file,
+    by the rule the command applies (radiokit.calibrate.refuse_unnameable)."""
+    import h5py
+
+    name = "d" * (strict_json.MAX_CHARS + 100)
+    path = tmp_path / "long.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset(name, data=np.full((3, 8, 8), 100, np.uint16))
+        f.create_dataset("flats", data=np.full((3, 8, 8), 1000, np.uint16))
+    darks, flats = read(path, hdf5_dataset=name), read(path, hdf5_dataset="flats")
+    flats.data[...] = 50  # darker than the darks: a calibration averaged first is refused for that
+    with pytest.raises(ValueError) as info:
+        Calibration.from_frames(darks, flats)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and str(strict_json.MAX_CHARS) in message, message[:300]
+    assert "provenance" in message and len(message) < 2000, message[:300]
