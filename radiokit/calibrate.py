@@ -40,6 +40,9 @@ __all__ = [
     "exposure_factors",
     "adc_top",
     "declared_bit_depth",
+    "declared_range",
+    "declared_signed",
+    "declared_levels",
     "declared_scaling",
     "pixel_layout",
     "declared_layout",
@@ -670,6 +673,7 @@ class Calibration:
         bit_depth=None,
         layout=None,
         scaling=None,
+        signed=None,
         **thresholds,
     ) -> Calibration:
         """Average darks and flats robustly and map the panel's defects.
@@ -688,6 +692,10 @@ class Calibration:
             those :class:`radiokit.io.Frames` give say (``meta["bit_depth"]``). Without
             ``saturation``, :func:`saturation_level` decides (``2**bit_depth - 1`` unless the
             frames pass it, else the frames' own values).
+        signed : bool, optional
+            Whether those ADC counts are signed (:func:`declared_signed`, :func:`declared_range`:
+            a signed 12-bit ADC's top is 2047); by default what :class:`radiokit.io.Frames` say
+            (``meta["bit_depth_signed"]``, a DICOM's PixelRepresentation), unsigned for arrays.
         layout : dict, optional
             Where the frames' pixels lie on the sensor as their files were read
             (:func:`pixel_layout`, :func:`declared_layout`); by default what :class:`radiokit.io.Frames`
@@ -724,6 +732,14 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
+        if signed is None:
+            signed = declared_signed(
+                {
+                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth_signed")
+                    for what, f in (("darks", darks), ("flats", flats))
+                }
+            )
+        top = None if bit_depth is None else declared_range(bit_depth, signed)[1]  # the file's word
         if layout is None:  # as the frames' files were read, where the frames say
             layout = declared_layout(
                 {
@@ -734,12 +750,16 @@ class Calibration:
         if scaling is None:
             scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
-        given_frames = {"darks": darks, "flats": flats}  # the Frames' files, recorded below
+        # the Frames' files, recorded in the provenance: refused now where it could not be saved
+        given = {"darks": darks, "flats": flats}
+        inputs = _frames_inputs(given, {k: len(v) if hasattr(v, "meta") else 0 for k, v in given.items()})
+        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len(inputs))
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
         if not given:
-            th = replace(th, saturation=saturation_level(darks, flats, bit_depth=bit_depth, scaling=scaling or None))
+            level = saturation_level(darks, flats, bit_depth=bit_depth, scaling=scaling or None, signed=signed)
+            th = replace(th, saturation=level)
             if scaling and th.saturation is None:  # said, never a silent "none saturated"
                 warnings.warn(
                     f"saturation not checked: the darks' and flats' values are scaled ({scaling['text']}) "
@@ -748,7 +768,7 @@ class Calibration:
                     stacklevel=2,
                 )
             # the file's word, not a guess (a depth the frames pass is no ADC of theirs: guessed)
-            given = bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1
+            given = top is not None and th.saturation == top
         rows = darks.shape[1]
         with _bar(progress, 3 * rows, "calibrate darks", "row") as bar:
             dark, dark_std = robust_average(darks, clip_sigma=th.clip_sigma, return_std=True, callback=bar.update)
@@ -764,9 +784,11 @@ class Calibration:
         # the files' word for their ADC (a raw preset's: the panel named), kept so that a frame
         # passing its top is reported (radiokit.correct.declared_top): C7942.md, a value above 4095
         # is a wrong bit or byte order or another panel
-        if bit_depth is not None and th.saturation == (1 << int(bit_depth)) - 1:
+        if top is not None and th.saturation == top:
             cal.provenance["bit_depth"] = int(bit_depth)
-        cal.provenance["inputs"] = _frames_inputs(given_frames, {"darks": darks.shape[0], "flats": flats.shape[0]})
+            if signed:  # (its top 2**(bits - 1) - 1: radiokit.correct.declared_top)
+                cal.provenance["bit_depth_signed"] = True
+        cal.provenance["inputs"] = inputs
         return cal
 
     @classmethod
@@ -1270,6 +1292,38 @@ def declared_bit_depth(bit_depths: dict) -> int | None:
     return found.popitem()[1] if found else None
 
 
+def declared_signed(signs: dict) -> bool:
+    """Whether the ADC counts the frames' files declare are signed (``signs``: each file's name and
+    its ``meta["bit_depth_signed"]``, a DICOM's PixelRepresentation 1; None or False where it says
+    nothing or unsigned). Files saying both are refused, as different depths are."""
+    said = {name: bool(v) for name, v in signs.items() if v is not None}
+    if len(set(said.values())) > 1:
+        named = ", ".join(f"{name.strip()} {'signed' if v else 'unsigned'}" for name, v in said.items())
+        raise ValueError(f"the darks' and flats' files declare signed and unsigned counts ({named}): not one panel")
+    return any(said.values())
+
+
+def declared_range(bit_depth, signed=False) -> tuple[int, int]:
+    """The lowest and highest count of an ADC of ``bit_depth`` bits: 0 and ``2**bits - 1``, or, its
+    counts signed (two's complement in ``bit_depth`` bits: a DICOM's PixelRepresentation 1),
+    ``-2**(bits - 1)`` and ``2**(bits - 1) - 1``. Why: a signed 12-bit panel clips at 2047 and
+    -2048; judged as unsigned, against 4095, its clipped pixels were never saturated."""
+    bits = int(bit_depth)
+    return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+
+
+def declared_levels(bit_depth, signed=False, scaling=None, dtype=np.float32) -> tuple:
+    """:func:`declared_range`'s lowest and highest count as the values read them: scaled
+    (``scaling``, :func:`value_scaling`) in the values' own type (``dtype``'s with float32 at
+    least), as :func:`saturation_level` gives a scaled top; the counts themselves where not scaled."""
+    low, high = declared_range(bit_depth, signed)
+    if scaling is None:
+        return low, high
+    values = np.result_type(np.float32, dtype)
+    scale, offset = values.type(scaling["scale"]), values.type(scaling["offset"])
+    return float(values.type(low) * scale + offset), float(values.type(high) * scale + offset)
+
+
 def value_scaling(meta: dict) -> dict | None:
     """How a file's stored counts became the values read (``value = stored * scale + offset``):
     a GDAL TIFF's SCALE/OFFSET (``meta["gdal_scaling"]``) or an HDF5 dataset's CF packing
@@ -1292,7 +1346,7 @@ def value_scaling(meta: dict) -> dict | None:
     return {"scale": float(scale), "offset": float(offset), "stored": np.dtype(meta["stored_dtype"]), "text": text}
 
 
-def _scaled_level(stacks, bit_depth, scaling) -> float | None:
+def _scaled_level(stacks, bit_depth, scaling, signed=False) -> float | None:
     """:func:`saturation_level` of scaled ``stacks`` (:func:`value_scaling`): the top judged on the
     stored counts recovered from the values, given back as a value computed as the reader computes
     them, in the values' own type (a pixel stored at the top reads exactly the level: computed in
@@ -1303,7 +1357,7 @@ def _scaled_level(stacks, bit_depth, scaling) -> float | None:
     if scale < 0 or stored.kind not in "ui":
         return None
     counts = [_stored_counts(s, scale, offset, stored) for s in stacks]
-    top = saturation_level(*counts, bit_depth=bit_depth) if all(c.size for c in counts) else None
+    top = saturation_level(*counts, bit_depth=bit_depth, signed=signed) if all(c.size for c in counts) else None
     if top is None:
         return None
     return float(values.type(top) * values.type(scale) + values.type(offset))
@@ -1323,15 +1377,17 @@ def _stored_counts(stack, scale, offset, stored) -> np.ndarray:
     return np.concatenate(out) if out else np.empty(0, stored)
 
 
-def saturation_level(*stacks, bit_depth=None, scaling=None) -> int | float | None:
+def saturation_level(*stacks, bit_depth=None, scaling=None, signed=False) -> int | float | None:
     """The saturation level of frames ``stacks`` (the ADC value at and above which a pixel is
     clipped): radiokit's one rule, applied by ``calibrate`` (recorded in the calibration, which
     ``correct`` counts every frame against, integer or float), and ``info``.
 
     1. The bit depth the frames' file declares (``bit_depth``: a TIFF's BitsPerSample or
        MaxSampleValue below its word, an ITEX header's panel, an experiment file's or NXdetector's
-       ``bit_depth_readout``; :func:`declared_bit_depth`): ``2**bit_depth - 1``, unless the frames
-       pass it (MSB-aligned counts: ``read()`` warned), when they are judged as undeclared ones.
+       ``bit_depth_readout``; :func:`declared_bit_depth`): ``2**bit_depth - 1`` (``signed``, a
+       DICOM's PixelRepresentation 1: ``2**(bit_depth - 1) - 1``, :func:`declared_range`), unless
+       the frames pass it (MSB-aligned counts: ``read()`` warned), when they are judged as
+       undeclared ones.
     2. Else :func:`adc_top`: 8-bit integers the type's top (255), wider frames the smallest usual
        ADC top their values fit (all but :data:`ADC_OUTLIER_SHARE` of each stack's), 1023 only
        where the values pile up there, less the low bits MSB-aligned frames leave unused (65520).
@@ -1343,9 +1399,9 @@ def saturation_level(*stacks, bit_depth=None, scaling=None) -> int | float | Non
     Scaled values (``scaling``, :func:`value_scaling`): the level of their stored counts, as a value
     (``top * scale + offset``); None for a negative scale (said by each command: not checked)."""
     if scaling is not None:
-        return _scaled_level(stacks, bit_depth, scaling)
+        return _scaled_level(stacks, bit_depth, scaling, signed)
     if bit_depth is not None:
-        declared = (1 << int(bit_depth)) - 1
+        declared = declared_range(bit_depth, signed)[1]
         if max(float(np.max(s)) for s in stacks) <= declared:
             return declared
     return adc_top(*stacks)
@@ -1947,6 +2003,33 @@ class CalibrationInput:
     def record(self) -> dict:
         """This input as the provenance's JSON object."""
         return asdict(self)
+
+
+def refuse_unnameable(where: str, names: dict, n_files: int) -> None:
+    """Refuse dark and flat files more than a calibration's provenance can name: ``names``, its
+    items that name them (``inputs``, and the command's ``dark_files`` and ``flat_files``), whose
+    JSON would pass what radiokit reads back (:data:`radiokit._json.MAX_CHARS`); a ValueError of
+    one line, ``where`` first. The one rule of the command (before it opens a file) and of
+    :meth:`Calibration.from_frames` (before it averages a frame). Why: either made the calibration
+    and then refused its save (review s53rvoff; from an HDF5 dataset's 4 MB name, s54)."""
+    size = len(strict_json.dumps(names))
+    if size > strict_json.MAX_CHARS:
+        raise ValueError(
+            f"{where}: {n_files} dark and flat files would be named in the calibration's provenance in at least "
+            f"{size} characters of JSON, past the {strict_json.MAX_CHARS} radiokit reads back; calibrate from fewer "
+            "files (or datasets of shorter names), or from one HDF5 stack of their frames"
+        )
+
+
+def _named_frames(darks, flats) -> str:
+    """``darks FILE, flats FILE`` for a message on :meth:`Calibration.from_frames`' frames, each
+    named where it is :class:`radiokit.io.Frames` of a file (``the darks``, ``the flats`` else)."""
+
+    def one(kind, frames):
+        path = getattr(frames, "meta", {}).get("path") if isinstance(getattr(frames, "meta", None), dict) else None
+        return f"{kind} {shown(path)}" if path else f"the {kind}"
+
+    return f"{one('darks', darks)}, {one('flats', flats)}"
 
 
 def _frames_inputs(given: dict, counts: dict) -> list[dict]:

@@ -132,6 +132,13 @@ def _over_hdf5_files(option: str, dataset, paths, fmt=None) -> dict:
 
 
 def _add_raw_hints(p):
+    # --format with the command's own options: it says how every file is read (a DICOM, a PNG),
+    # and was listed under the raw group, where a reader of anything but raw files never looked
+    p.add_argument(
+        "--format",
+        choices=["raw", "tiff", "itex", "hdf5", "png", "jpeg", "jpeg2000", "dicom"],
+        help="read the files as this format, skipping detection (default: detected from each file's contents)",
+    )
     g = p.add_argument_group("raw files (headerless)")
     g.add_argument(
         "--preset", help="geometry preset, e.g. c7942, c7942-2x2 (default: from the size where only one fits)"
@@ -142,11 +149,6 @@ def _add_raw_hints(p):
     g.add_argument("--dtype", help="pixel type with --shape, e.g. '<f4' for float32 (default '<u2', 16-bit)")
     g.add_argument("--byteorder", choices=["<", ">", "little", "big"], help="byte order (default little)")
     g.add_argument("--offset", type=int, help="bytes to skip at the start")
-    g.add_argument(
-        "--format",
-        choices=["raw", "tiff", "itex", "hdf5", "png", "jpeg", "jpeg2000", "dicom"],
-        help="skip format detection",
-    )
     g = p.add_argument_group("HDF5 files of other layouts", _DATASET_RULE)
     g.add_argument("--dataset", help="the dataset holding the frames (rows, cols) or (n, rows, cols), e.g. scan/data")
     g.add_argument(
@@ -281,7 +283,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
     spaced frames (``every``: all of them)."""
-    from radiokit.calibrate import saturation_level, value_scaling
+    from radiokit.calibrate import declared_levels, saturation_level, value_scaling
 
     lo, hi, saturated, nonfinite, nonfinite_frames = None, None, 0, 0, 0
     n_read = len(src) if every else min(len(src), sample)
@@ -291,18 +293,22 @@ def _describe(path, src, every: bool, sample: int) -> dict:
     # frames: its own guess (or the declared 4095 over MSB-aligned counts) called every pixel of a
     # 12-bit TIFF in the high bits saturated, and 8-bit files' 255s went uncounted. Floats are no
     # ADC's words: a level only where the file declares a depth.
-    held, top, basis = {}, None, None
+    held, top, low, basis = {}, None, None, None
     bits = src.meta.get("bit_depth")
+    signed = src.meta.get("bit_depth_signed") is True  # a DICOM's PixelRepresentation 1: it clips at both ends
     # scaled values (GDAL, CF): the level is of the stored counts, given as a value (review s46rio)
     scaling = value_scaling(src.meta)
     if len(src) and (src.dtype.kind in "ui" or bits is not None or scaling):
         held = {int(i): src[int(i)] for i in _spaced(len(src), min(len(src), sample, _SATURATION_FRAMES))}
         parts = [f[np.isfinite(f)] if f.dtype.kind == "f" else f.ravel() for f in held.values()]
         stack = parts[0] if len(parts) == 1 else np.concatenate(parts)  # one frame: no copy of it
-        top = saturation_level(stack, bit_depth=bits, scaling=scaling) if stack.size else None
-        declared = bits is not None and top == (1 << int(bits)) - 1
+        top = saturation_level(stack, bit_depth=bits, scaling=scaling, signed=signed) if stack.size else None
+        # the declared ends as the values read them (a scaled file's too): a signed ADC clips at both
+        ends = declared_levels(bits, signed, scaling, stack.dtype) if bits is not None else (None, None)
+        declared = ends[1] is not None and top == ends[1]
+        low = ends[0] if declared and signed else None
         basis = (
-            f"declared {bits}-bit"
+            f"declared {bits}-bit{' signed' if signed else ''}"
             if declared
             else f"from the values, above the declared {bits}-bit range"
             if bits is not None
@@ -327,6 +333,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
             hi = fmax if hi is None else max(hi, fmax)
         if top is not None:
             saturated += int(np.count_nonzero(frame >= top))
+        if low is not None:  # a signed ADC's bottom (-2048 of 12 bits) is a clip too
+            saturated += int(np.count_nonzero(frame <= low))
     return {
         "file": str(path),
         "format": src.meta.get("format", src.format),
@@ -338,6 +346,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         # a scaled file whose top is not known: "unknown", never a silent 0 or nothing
         "saturated": saturated if top is not None else "unknown" if scaling else None,
         "saturation": top,
+        **({"saturation_low": low} if low is not None else {}),
         "saturation_from": basis if top is not None or scaling else None,
         "nonfinite": nonfinite,
         "nonfinite_frames": nonfinite_frames,
@@ -458,53 +467,64 @@ def cmd_info(args) -> int:
 
         print(json.dumps([strict(r) for r in reports], indent=2, default=str, allow_nan=False))
         return status
-    for rep in reports:
-        if "frames" not in rep:  # its one line is on stderr
-            continue
-        print(shown(rep["file"]))
-        print(f"  format     {rep['format']}")
-        none = "" if rep["frames"] else " (no frames)"
-        print(f"  frames     {rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}")
-        of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
-        if rep["range"] is not None:
-            # float32 carries about 7 significant digits; float64's repr printed nine more of noise
-            lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
-            print(f"  range      {lo} .. {hi}{of}")
-        if rep["saturated"] == "unknown":
-            print(f"  saturated  {rep['saturation_from']}")
-        elif rep["saturated"] is not None:
-            level = rep["saturation"]  # a scaled file's is a float value (float32: 7 digits)
-            level = f"{level:.7g}" if isinstance(level, float) else level
-            print(f"  saturated  {rep['saturated']} pixel(s) >= {level} ({rep['saturation_from']}){of}")
-        if rep["nonfinite"]:
-            k, read_ = rep["nonfinite_frames"], rep["frames_read"]
-            plural = "s" if read_ > 1 else ""  # (one frame of one: "1 of 1 frames" read wrong)
-            held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
-            print(f"  nonfinite  {rep['nonfinite']} pixel(s) NaN or inf in {held}")
-        for key, value in rep["metadata"].items():
-            if key == "inputs":  # a calibration's input records, for --json: "made from" says them
-                continue
-            if key == "made from":  # a calibration's input files, one a line
-                _print_lines(key, value)
-            else:
-                print(f"  {key:<10} {_escaped(value)}")
+    # one table over all the files: each item's value in one column, past the longest name (a
+    # DICOM's transfer_syntax pushed its value out of the 10 characters the others kept)
+    tables = [(rep["file"], _info_rows(rep)) for rep in reports if "frames" in rep]  # (a bad file: on stderr)
+    width = max([10, *(len(key) for _, rows in tables for key, _ in rows)])
+    for name, rows in tables:
+        print(shown(name))
+        for key, value in rows:
+            print(f"  {key:<{width}} {value}")
     return status
+
+
+def _info_rows(rep: dict) -> list[tuple[str, str]]:
+    """``info``'s items of one file's report ``rep``, as (name, text) rows: the name empty on an
+    item's further lines (a calibration's input files)."""
+    rows = [("format", str(rep["format"]))]
+    none = "" if rep["frames"] else " (no frames)"
+    rows.append(("frames", f"{rep['frames']} x {rep['shape'][0]} rows x {rep['shape'][1]} cols, {rep['dtype']}{none}"))
+    of = "" if rep["frames_read"] == rep["frames"] else f" (in {rep['frames_read']} of {rep['frames']} frames)"
+    if rep["range"] is not None:
+        # float32 carries about 7 significant digits; float64's repr printed nine more of noise
+        lo, hi = (f"{v:.7g}" if isinstance(v, float) else v for v in rep["range"])
+        rows.append(("range", f"{lo} .. {hi}{of}"))
+    if rep["saturated"] == "unknown":
+        rows.append(("saturated", str(rep["saturation_from"])))
+    elif rep["saturated"] is not None:
+        # a scaled file's levels are float values (float32: 7 digits)
+        level, low = (f"{v:.7g}" if isinstance(v, float) else v for v in (rep["saturation"], rep.get("saturation_low")))
+        low = "" if low is None else f" or <= {low}"  # a signed ADC's bottom
+        rows.append(("saturated", f"{rep['saturated']} pixel(s) >= {level}{low} ({rep['saturation_from']}){of}"))
+    if rep["nonfinite"]:
+        k, read_ = rep["nonfinite_frames"], rep["frames_read"]
+        plural = "s" if read_ > 1 else ""  # (one frame of one: "1 of 1 frames" read wrong)
+        held = f"{k} of the {read_} frames read (of {rep['frames']})" if of else f"{k} of {read_} frame{plural}"
+        rows.append(("nonfinite", f"{rep['nonfinite']} pixel(s) NaN or inf in {held}"))
+    for key, value in rep["metadata"].items():
+        if key == "inputs":  # a calibration's input records, for --json: "made from" says them
+            continue
+        if key == "made from":  # a calibration's input files, one a line
+            rows += _lines_rows(key, value)
+        else:
+            rows.append((key, _escaped(value)))
+    return rows
 
 
 #: the most lines ``info`` prints of one item (a calibration's input files) before saying how many more
 _MOST_LINES = 10
 
 
-def _print_lines(key: str, lines: list) -> None:
-    """``info``'s item ``key`` of several ``lines``, one a line under it: a calibration made from
-    300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
+def _lines_rows(key: str, lines: list) -> list[tuple[str, str]]:
+    """``info``'s item ``key`` of several ``lines``, one a row, its name on the first: a calibration
+    made from 300 single-frame TIFFs names the first few and how many more (``--json`` has them all)."""
     # (as radiokit.calibrate.input_lines wrote them: their names as names print, no _escaped, which
     # printed a name's byte that is not UTF-8 as \udce9)
     first = lines if len(lines) <= _MOST_LINES else lines[: _MOST_LINES - 1]
-    for k, line in enumerate(first):
-        print(f"  {key if k == 0 else '':<10} {line}")
+    rows = [(key if k == 0 else "", line) for k, line in enumerate(first)]
     if len(first) < len(lines):
-        print(f"  {'':<10} ... and {len(lines) - len(first)} more (radiokit info --json lists them all)")
+        rows.append(("", f"... and {len(lines) - len(first)} more (radiokit info --json lists them all)"))
+    return rows
 
 
 # -- calibrate ---------------------------------------------------------------------------------
@@ -608,7 +628,8 @@ def _stack(
 ) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
-    bits (``meta["bit_depth"]``, None where it says nothing), ``layouts`` where each file's
+    bits (``meta["bit_depth"]``, None where it says nothing; keyed ``(file, "signed")``, whether
+    they are signed, ``meta["bit_depth_signed"]``), ``layouts`` where each file's
     pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
     file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's (and dataset's)
     :class:`radiokit.calibrate.CalibrationInput` (``hints["option"]``: the option that named its
@@ -632,8 +653,9 @@ def _stack(
                 if src.frame_shape != first[1]:  # np.stack would say only "must have the same shape"
                     raise FormatError(p, f"frames are {src.frame_shape}, those of {shown(first[0])} {first[1]}")
                 total += len(src) * src.frame_bytes
-                if bit_depths is not None:
+                if bit_depths is not None:  # (and whether its counts are signed: a DICOM's word)
                     bit_depths[str(p)] = src.meta.get("bit_depth")
+                    bit_depths[str(p), "signed"] = src.meta.get("bit_depth_signed")
                 if scalings is not None:  # its values' scaling (a GDAL or CF file's): the level's unit
                     scalings[str(p)] = value_scaling(src.meta)
                 if layouts is not None:
@@ -670,10 +692,12 @@ def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
     """What the dark and flat files say of themselves, as :meth:`Calibration.from_frames` takes it:
     their bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess, where their pixels
     lie, and their values' scaling (a GDAL or CF file's: the saturation level's unit)."""
-    from radiokit.calibrate import declared_bit_depth, declared_layout, declared_scaling
+    from radiokit.calibrate import declared_bit_depth, declared_layout, declared_scaling, declared_signed
 
+    signs = {name: v for (name, _), v in ((k, v) for k, v in bits.items() if isinstance(k, tuple))}
     return {
-        "bit_depth": declared_bit_depth(bits),
+        "bit_depth": declared_bit_depth({k: v for k, v in bits.items() if isinstance(k, str)}),
+        "signed": declared_signed(signs),
         "layout": declared_layout(layouts),
         "scaling": declared_scaling(scalings),
     }
@@ -732,14 +756,13 @@ def cmd_calibrate(args) -> int:
 
 def _refuse_unnameable(output, darks, flats) -> None:
     """Refuse, before any file is opened, dark and flat files more than the calibration's
-    provenance can name: its ``dark_files``, ``flat_files`` and ``inputs`` (each file's name as
-    given and resolved, :class:`radiokit.calibrate.CalibrationInput`) judged at their least
-    (no format, dataset, size or time), past what radiokit reads back
-    (:data:`radiokit._json.MAX_CHARS`). Why: ``calibrate`` from ~13 000 files read every frame,
-    then refused the save (review s53rvoff). A few more characters per file (the format, an HDF5
-    dataset's name) are judged exactly at the save, after the reading."""
-    from radiokit._json import MAX_CHARS, dumps
-    from radiokit.calibrate import CalibrationInput
+    provenance can name (:func:`radiokit.calibrate.refuse_unnameable`): its ``dark_files``,
+    ``flat_files`` and ``inputs`` (each file's name as given and resolved,
+    :class:`radiokit.calibrate.CalibrationInput`) judged at their least (no format, dataset, size
+    or time). Why: ``calibrate`` from ~13 000 files read every frame, then refused the save
+    (review s53rvoff). A few more characters per file (the format, an HDF5 dataset's name) are
+    judged exactly at the save, after the reading."""
+    from radiokit.calibrate import CalibrationInput, refuse_unnameable
 
     files = list(dict.fromkeys(map(str, [*darks, *flats])))  # one file in both lists: one record at least
     least = {
@@ -747,13 +770,7 @@ def _refuse_unnameable(output, darks, flats) -> None:
         "flat_files": [str(p) for p in flats],
         "inputs": [CalibrationInput(p, str(Path(p).resolve()), "", size_bytes=0).record() for p in files],
     }
-    size = len(dumps(least))
-    if size > MAX_CHARS:
-        raise ValueError(
-            f"{shown(output)}: not written: {len(darks) + len(flats)} dark and flat files would be named in the "
-            f"calibration's provenance in at least {size} characters of JSON, past the {MAX_CHARS} radiokit reads "
-            "back; calibrate from fewer files, or from one HDF5 stack of their frames"
-        )
+    refuse_unnameable(f"{shown(output)}: not written", least, len(darks) + len(flats))
 
 
 def _calibration_from_files(args, th):

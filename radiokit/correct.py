@@ -26,7 +26,7 @@ import numpy as np
 from radiokit import _json as strict_json
 from radiokit._names import shown
 from radiokit._threads import pool, threads
-from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, frame_saturation
+from radiokit.calibrate import FLOAT32_MAX, Calibration, PixelFlag, beyond_float32, declared_range, frame_saturation
 from radiokit.checks import is_number, refuse_masked
 from radiokit.errors import FormatError
 
@@ -408,7 +408,8 @@ def declared_top(cal: Calibration) -> int | None:
     """The top of the ADC the calibration's darks and flats declared (``provenance["bit_depth"]``,
     recorded by :meth:`Calibration.from_frames` from the files' word), None where it was guessed."""
     bits = cal.provenance.get("bit_depth")
-    return (1 << bits) - 1 if type(bits) is int and 1 <= bits <= 16 else None
+    signed = cal.provenance.get("bit_depth_signed") is True  # a signed ADC's: 2**(bits - 1) - 1
+    return declared_range(bits, signed)[1] if type(bits) is int and 1 <= bits <= 16 else None
 
 
 def above_top(cal: Calibration, raw2d, top) -> int:
@@ -436,7 +437,7 @@ def warn_above_top(cal: Calibration, n_pixels: int, n_frames: int, stacklevel=3)
     warnings.warn(
         BitDepthWarning(
             f"{n_pixels} pixels of {n_frames} frame(s) read above {top}, the top of the "
-            f"{cal.provenance['bit_depth']}-bit ADC the calibration's darks and flats declared: a wrong bit or "
+            f"{cal.provenance['bit_depth']}-bit{' signed' if cal.provenance.get('bit_depth_signed') is True else ''} ADC the calibration's darks and flats declared: a wrong bit or "
             "byte order, or another panel's frames (C9730DK/C9732DK are 14-bit); corrected as stored"
         ),
         stacklevel=stacklevel,
@@ -967,7 +968,7 @@ def _nothing_to_correct(headers, image_keys) -> str:
 SOURCES_LISTED_CHARS = strict_json.MAX_CHARS // 4
 
 
-def stack_meta(domain: str, provenance: dict, inputs) -> dict:
+def stack_meta(domain: str, provenance: dict, inputs, listed_in: str | None = None) -> dict:
     """The metadata :func:`correct_files` writes with its stack: the domain, the calibration's
     provenance and the input files (``sources``, which the ``source_index`` column counts into).
     A list whose JSON passes :data:`SOURCES_LISTED_CHARS`, or the room the rest leaves in
@@ -975,7 +976,10 @@ def stack_meta(domain: str, provenance: dict, inputs) -> dict:
     ``{"count", "first", "last", "sha256"}``, the digest of the names' bytes each ended by NUL
     but the last (no path holds one; a newline, a path can). Why: 50 000 projection files, one
     per TIFF, are 4.6 MB of names, past what radiokit reads back, and the stack's description
-    and ``sources`` were kept as text by its own readers (s53)."""
+    and ``sources`` were kept as text by its own readers (s53). ``listed_in``: where the stack
+    lists every name whatever this says (an HDF5 stack's ``/entry/sources``, which its frames'
+    ``source_index`` resolves against: a summary dropped the middle names they counted into),
+    named in the summary."""
     names = [str(p) for p in inputs]
     # a TIFF's one description holds the provenance too: the list gets the room it leaves (a
     # calibration of 10 000 files, 3.3 MB, beside 9 000 names made a .tif output refused: s53rvoff)
@@ -983,7 +987,18 @@ def stack_meta(domain: str, provenance: dict, inputs) -> dict:
     if names and len(strict_json.dumps(names)) > min(SOURCES_LISTED_CHARS, strict_json.MAX_CHARS - rest):
         digest = hashlib.sha256(b"\0".join(os.fsencode(n) for n in names)).hexdigest()
         names = {"count": len(names), "first": names[0], "last": names[-1], "sha256": digest}
+        if listed_in:
+            names["listed_in"] = listed_in
     return {"domain": domain, "calibration": provenance, "sources": names}
+
+
+def _listed_in(output) -> str | None:
+    """Where a stack written to ``output`` lists every input whatever its meta says: an HDF5
+    stack's ``/entry/sources``, which its frames' ``source_index`` counts into; None for a TIFF
+    stack (no ``source_index``: its meta's ``sources``, listed or summarised, are all it says)."""
+    from radiokit.io._write import SOURCES
+
+    return f"/{SOURCES}" if Path(output).suffix.lower() in (".h5", ".hdf5", ".nxs") else None
 
 
 def correct_files(
@@ -997,9 +1012,10 @@ def correct_files(
     records, per frame, the source file and frame index, the compression step where known, and
     the saturated (:data:`NOT_CHECKED`, -1, where not checked) and non-positive counts, and the calibration's defect map (the pixels filled in
     every frame) as ``/entry/instrument/detector/pixel_mask``; its metadata (a TIFF's description)
-    names the domain, the calibration's provenance and the input files, ``sources``, which
-    ``source_index`` counts into (:func:`stack_meta`: past about 11 000 files, a count and a
-    digest). Returns a summary dict.
+    names the domain, the calibration's provenance and the input files, ``sources`` (:func:`stack_meta`:
+    past about 11 000 files, a count and a digest); the HDF5 output lists every one in
+    ``/entry/sources``, which ``source_index`` counts into (``read_stack(...).sources``). Returns a
+    summary dict.
 
     ``output`` is written atomically (a temporary file renamed into place when complete); an
     existing one is replaced only with ``overwrite=True``, and never when it is one of ``inputs``.
@@ -1017,7 +1033,7 @@ def correct_files(
         raise ValueError(f"{', '.join(map(shown, inputs))}: {_nothing_to_correct(headers, image_keys)}")
     sources = _OneOpen(inputs, headers, hints)
     try:
-        meta = stack_meta(domain, cal.provenance, inputs)
+        meta = stack_meta(domain, cal.provenance, inputs, listed_in=_listed_in(output))
         t0 = time.perf_counter()
         sat_total = np_total = over_total = unchecked = 0
         with (
@@ -1032,6 +1048,7 @@ def correct_files(
                 pixel_mask=cal.mask,  # which pixels every frame had filled: the counts did not say where
                 pixel_mask_attrs=_mask_attrs(cal),
                 series_attrs={"saturated": _SATURATED_ATTRS},
+                sources=[str(p) for p in inputs],
             ) as writer,
             tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,

@@ -424,3 +424,12 @@ def square_pair(n=160):
     mask = np.zeros((n, n), bool)
     mask[inside] = True
     return reference, moving, mask
+
+
+def info_items(stdout: str) -> str:
+    """``radiokit info``'s text with each item's padding (its name to the table's value column, as
+    wide as the table's longest name) made two spaces: ``"saturated  5 pixel(s) ..."``, whatever
+    names the files' tables hold. An item's further lines (no name) are kept as printed."""
+    import re
+
+    return re.sub(r"(?m)^  (\S.*?)  +(?=\S)", r"  \1  ", stdout)

@@ -16,7 +16,7 @@ import pytest
 
 # the real vendor files: beside the checkout, or where test_io.py finds them
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, run_cli, synthetic
+from conftest import info_items, needs_itex, run_cli, synthetic
 from scipy import ndimage
 
 from radiokit.io import ExperimentWriter, ImageKey, read
@@ -79,7 +79,7 @@ def test_info_itex_shows_where_a_subarray_lies_on_the_sensor(tmp_path):
     (tmp_path / "roi.img").write_bytes(head + pix.tobytes())
     res = run_cli("info", tmp_path / "roi.img")
     assert res.returncode == 0, res.stderr
-    assert "offset     x 200, y 100" in res.stdout, res.stdout
+    assert "offset  x 200, y 100" in info_items(res.stdout), res.stdout
     whole = run_cli("info", ITEX / "photon_counting.img") if ITEX.exists() else None
     assert whole is None or "offset" not in whole.stdout
 
@@ -1921,3 +1921,26 @@ def test_main_leaves_no_signal_blocked_when_several_stops_raise_at_once_in_the_g
     assert isinstance(outcome, (KeyboardInterrupt, SystemExit)), (outcome, capsys.readouterr())
     if raising == 2:
         assert after == ours, after
+
+
+@pytest.mark.parametrize("command", ["info", "calibrate", "correct"])
+def test_help_lists_format_with_the_general_options_not_the_raw_ones(command):
+    """``--format`` chooses how every file is read (TIFF, HDF5, PNG, DICOM...), not a raw file's
+    geometry: ``--help`` listed it under "raw files (headerless)", where a user reading a DICOM
+    never looks. It sits under "options", and the raw group holds the raw geometry alone."""
+    res = run_cli(command, "--help")
+    assert res.returncode == 0, res.stderr
+    heading, headings = None, {}
+    for line in res.stdout.splitlines():
+        if line and not line.startswith(" ") and line.endswith(":"):
+            heading = line[:-1]
+        elif line.lstrip().startswith("--"):
+            headings[line.split()[0]] = heading
+    assert headings["--format"] == "options", headings
+    assert {o for o, h in headings.items() if h == "raw files (headerless)"} == {
+        "--preset",
+        "--shape",
+        "--dtype",
+        "--byteorder",
+        "--offset",
+    }

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 import tifffile
 from conftest import ITEX_DIR as ITEX
-from conftest import needs_itex, run_cli, synthetic
+from conftest import info_items, needs_itex, run_cli, synthetic
 
 from radiokit.errors import FormatError
 from radiokit.io import ExperimentWriter, ImageKey, memory_budget, open_frames, parse_size, read
@@ -649,7 +649,7 @@ def test_a_frame_of_only_nan_is_refused(tmp_path):
 @pytest.mark.parametrize(
     "steps, args, printed",
     [
-        (False, [], ["projections 3", "steps      []"]),  # an experiment without steps
+        (False, [], ["projections  3", "steps  []"]),  # an experiment without steps
         (True, ["--sample", "3"], ["(in 3 of 9 frames)"]),  # a sample of frames, not the whole file
     ],
 )
@@ -657,7 +657,7 @@ def test_info_prints_what_it_read(steps, args, printed, tmp_path):
     path = _experiment(tmp_path / "exp.h5", step=steps)
     res = run_cli("info", path, *args)
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
-    assert all(p in res.stdout for p in printed), res.stdout
+    assert all(p in info_items(res.stdout) for p in printed), res.stdout
 
 
 @pytest.mark.parametrize("case", ["no projections", "one step", "no darks", "not hdf5", "missing", "a folder"])
@@ -1824,7 +1824,7 @@ def test_a_calibration_whose_record_nests_deep_is_one_line_and_info_still_descri
         assert not (tmp_path / "out.h5").exists()
         res = run_cli("info", cal)
         assert res.returncode == 0, res.stderr
-        assert "made from  unreadable: provenance nests deeper than" in res.stdout, res.stdout
+        assert "made from  unreadable: provenance nests deeper than" in info_items(res.stdout), res.stdout
         assert "[[" not in res.stdout and len(res.stdout.splitlines()) < 10, res.stdout
 
 
@@ -2601,8 +2601,10 @@ def test_info_counts_saturated_pixels_of_a_tiff_whose_bit_depth_it_knows(tmp_pat
     tifffile.imwrite(tmp_path / "p12.tif", frames, bitspersample=12)
     tifffile.imwrite(tmp_path / "p16.tif", frames)
     res = run_cli("info", tmp_path / "p12.tif")
-    assert res.returncode == 0 and "saturated  5 pixel(s) >= 4095 (declared 12-bit)" in res.stdout, res.stdout
-    out = run_cli("info", tmp_path / "p16.tif").stdout
+    assert res.returncode == 0 and "saturated  5 pixel(s) >= 4095 (declared 12-bit)" in info_items(res.stdout), (
+        res.stdout
+    )
+    out = info_items(run_cli("info", tmp_path / "p16.tif").stdout)
     assert "saturated  5 pixel(s) >= 4095 (from the values)" in out, out
 
 
@@ -2622,13 +2624,13 @@ def test_a_tiff_max_sample_value_of_an_adc_is_its_bit_depth(tmp_path, tag, value
     res = run_cli("info", path)
     assert res.returncode == 0, res.stderr
     if bits is not None:
-        assert f"bit_depth  {bits} ({'MaxSampleValue' if tag == 281 else 'SMaxSampleValue'})" in res.stdout
+        assert f"bit_depth  {bits} ({'MaxSampleValue' if tag == 281 else 'SMaxSampleValue'})" in info_items(res.stdout)
     if bits == 12:
-        assert "saturated  5 pixel(s)" in res.stdout, res.stdout
+        assert "saturated  5 pixel(s)" in info_items(res.stdout), res.stdout
     elif bits == 14:
-        assert "saturated  0 pixel(s)" in res.stdout, res.stdout
+        assert "saturated  0 pixel(s)" in info_items(res.stdout), res.stdout
     else:  # the data's maximum: no depth declared, the level guessed from the values
-        assert "saturated  0 pixel(s) >= 4095 (from the values)" in res.stdout, res.stdout
+        assert "saturated  0 pixel(s) >= 4095 (from the values)" in info_items(res.stdout), res.stdout
 
 
 def test_a_tiff_max_sample_value_its_pixels_exceed_is_not_a_bit_depth(tmp_path):
@@ -2638,7 +2640,7 @@ def test_a_tiff_max_sample_value_its_pixels_exceed_is_not_a_bit_depth(tmp_path):
     path = tmp_path / "m.tif"
     tifffile.imwrite(path, frames, extratags=[(281, "H", 1, 4095, True)])
     assert "bit_depth" not in read(path).meta
-    out = run_cli("info", path).stdout  # 1 value of 512 above 4095: over the outlier share
+    out = info_items(run_cli("info", path).stdout)  # 1 value of 512 above 4095: over the outlier share
     assert "saturated  0 pixel(s) >= 16383 (from the values)" in out, out
 
 

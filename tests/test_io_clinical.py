@@ -101,11 +101,14 @@ def _dicom(
     syntax=None,
     pixels=True,
     spacing=None,
+    signed=False,
 ):
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import DeflatedExplicitVRLittleEndian, ExplicitVRLittleEndian, RLELossless, generate_uid
 
-    frames = np.asarray(frames, np.uint16)
+    # signed: PixelRepresentation 1, the values' two's complement in bits_stored bits (the bits above
+    # them 0, as a 12-bit panel's software writes them; pydicom extends the sign from BitsStored)
+    frames = np.asarray(frames, np.int16 if signed else np.uint16)
     syntax = syntax or ExplicitVRLittleEndian
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"  # DX for processing
@@ -120,8 +123,9 @@ def _dicom(
         if frames.ndim == 3:
             ds.NumberOfFrames = frames.shape[0]
         ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, photometric
-        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits_stored, bits_stored - 1, 0
-        ds.PixelData = frames.astype("<u2").tobytes()
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, bits_stored, bits_stored - 1, signed
+        words = frames.astype("<i2").view("<u2") & ((1 << bits_stored) - 1) if signed else frames.astype("<u2")
+        ds.PixelData = words.tobytes()
     if rescale:
         ds.RescaleSlope, ds.RescaleIntercept = rescale
     if spacing:
@@ -553,3 +557,142 @@ def test_an_rle_frame_that_does_not_decode_is_one_line(tmp_path):
     with pytest.raises(FormatError, match=r"rle\.dcm: frame 0 cannot be decoded") as info:
         read(path)
     assert "\n" not in str(info.value)
+
+
+def _deflate_block_types(stream: bytes) -> set:
+    """The BTYPE of each deflate block of a zlib ``stream`` made of stored blocks (0) up to its
+    first other block: walking a stored block's LEN is all it takes, no Huffman decoding."""
+    pos, types = 2, set()  # past the zlib header
+    while True:
+        head = stream[pos]
+        btype = (head >> 1) & 3
+        types.add(btype)
+        if btype != 0:
+            return types
+        (length,) = struct.unpack_from("<H", stream, pos + 1)
+        pos += 5 + length
+        if head & 1:  # BFINAL
+            return types
+
+
+def _idat_stream(png: bytes) -> bytes:
+    """A PNG's IDAT chunks' data, in order: its zlib stream."""
+    pos, stream = 8, b""
+    while pos < len(png):
+        (length,) = struct.unpack_from(">I", png, pos)
+        if png[pos + 4 : pos + 8] == b"IDAT":
+            stream += png[pos + 8 : pos + 8 + length]
+        pos += 12 + length
+    return stream
+
+
+def test_a_png_s_pixels_are_inflated_once(tmp_path, monkeypatch):
+    """IDAT's stream is inflated by radiokit's check (it ends where the image does) and then not
+    again: OpenCV is handed the inflated rows as stored deflate blocks, which libpng copies.
+    Why: the check and libpng each ran the whole Huffman decode (benchmarks/README.md,
+    bench_png_read.py). The values are still libpng's unfiltering of the file's rows."""
+    import cv2
+
+    image = (_texture((300, 400)) >> 12).astype(np.uint16) + 1000  # a compressible one: random words are stored
+    path = _png(tmp_path / "once.png", image)
+    handed = []
+    decode = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda buf, flags: handed.append(bytes(buf)) or decode(buf, flags))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    (png,) = handed
+    assert _deflate_block_types(_idat_stream(path.read_bytes())) != {0}  # the file's: Huffman-coded
+    streams = _idat_stream(png)
+    assert _deflate_block_types(streams) == {0}
+    assert len(zlib.decompress(streams)) == 300 * (1 + 400 * 2)  # a filter byte and 400 samples a row
+
+
+def _signed_12(shape=(40, 50), seed=5):
+    """A signed 12-bit radiograph: values about 0 +- 600, a patch clipped at the ADC's top (2047)
+    and one at its bottom (-2048); the patches' pixel counts returned with it."""
+    rng = np.random.default_rng(seed)
+    image = np.clip(np.rint(rng.normal(0, 600, shape)), -2000, 2000).astype(np.int16)
+    image[:4, :5], image[-3:, -6:] = 2047, -2048
+    return image, 4 * 5, 3 * 6
+
+
+def test_info_says_a_signed_12_bit_dicom_saturates_at_2047_and_minus_2048(tmp_path):
+    """PixelRepresentation 1, BitsStored 12: the ADC's range is -2048..2047 (two's complement in 12
+    bits), not 0..4095: its clipped pixels at either end are counted, against the levels its own
+    values read at. It was judged as unsigned: "0 pixel(s) >= 4095" of a clipped image."""
+    image, top, bottom = _signed_12()
+    got = read(_dicom(tmp_path / "signed.dcm", image, bits_stored=12, signed=True))
+    assert got.data.dtype == np.int16
+    np.testing.assert_array_equal(got.data[0], image)
+    (rep,) = json.loads(run_cli("info", tmp_path / "signed.dcm", "--json").stdout)
+    assert rep["saturation"] == (1 << 11) - 1 and rep["saturation_low"] == -(1 << 11)
+    assert rep["saturated"] == top + bottom
+    text = run_cli("info", tmp_path / "signed.dcm").stdout
+    assert re.search(rf"saturated +{top + bottom} pixel\(s\) >= 2047 or <= -2048 \(declared 12-bit signed\)", text)
+
+
+def test_a_signed_dicom_s_rescale_takes_its_saturation_levels_with_its_values(tmp_path):
+    """RescaleSlope 0.5, RescaleIntercept -1024: the levels are the ADC's ends as the values read
+    them (2047 * 0.5 - 1024 and -2048 * 0.5 - 1024), the same pixels counted."""
+    image, top, bottom = _signed_12()
+    path = _dicom(tmp_path / "ct.dcm", image, bits_stored=12, signed=True, rescale=(0.5, -1024))
+    np.testing.assert_allclose(read(path).data[0], image * 0.5 - 1024, rtol=0, atol=1e-12)
+    (rep,) = json.loads(run_cli("info", path, "--json").stdout)
+    assert rep["saturation"] == pytest.approx(2047 * 0.5 - 1024, abs=1e-6)
+    assert rep["saturation_low"] == pytest.approx(-2048 * 0.5 - 1024, abs=1e-6)
+    assert rep["saturated"] == top + bottom
+    assert rep["saturation_from"].startswith("declared 12-bit signed of the stored counts")
+    # unsigned alike: its declared 4095 as the values read it, said as declared (it was said "from
+    # the values, above the declared 12-bit range": the scaled top compared with the counts' 4095)
+    unsigned = _dicom(tmp_path / "u.dcm", image.astype(np.int32) + 2048, bits_stored=12, rescale=(2, -7))
+    (rep,) = json.loads(run_cli("info", unsigned, "--json").stdout)
+    assert rep["saturation"] == 4095 * 2 - 7 and "saturation_low" not in rep
+    assert rep["saturated"] == top and rep["saturation_from"].startswith("declared 12-bit of the stored counts")
+
+
+def test_a_calibration_from_signed_12_bit_dicoms_flags_flats_at_2047(tmp_path):
+    """Darks and flats of a signed 12-bit panel (read as the Python API reads them, and by the
+    command): the saturation level is 2047, the file's word, and the flat's clipped pixels are
+    over-responding defects; against 4095 they were not flagged at all."""
+    from radiokit.calibrate import Calibration, CalibrationWarning
+
+    rng = np.random.default_rng(7)
+    darks = np.rint(rng.normal(-1500, 3, (4, 32, 32))).astype(np.int16)
+    flats = np.rint(rng.normal(1900, 15, (4, 32, 32))).astype(np.int16)  # 2047 is 9.8 sigma off
+    flats[:, 5, 7] = 2047  # one pixel clipped in every flat: its response (2047 + 1500) / (1900 + 1500) = 1.04
+    # is no over-responding pixel's (1.3): only the saturation level flags it
+    d = _dicom(tmp_path / "d.dcm", darks, bits_stored=12, signed=True)
+    f = _dicom(tmp_path / "f.dcm", flats, bits_stored=12, signed=True)
+    with pytest.warns(CalibrationWarning, match=r"1 pixels of the flats are saturated \(>= 2047\)"):
+        cal = Calibration.from_frames(read(d), read(f))
+    assert cal.thresholds.saturation == 2047 and cal.mask[5, 7] and np.count_nonzero(cal.mask) == 1
+    res = run_cli("calibrate", "--dark", d, "--flat", f, "-o", tmp_path / "cal.h5")
+    assert res.returncode == 0, res.stderr
+    assert Calibration.load(tmp_path / "cal.h5").thresholds.saturation == 2047
+
+
+def test_info_prints_one_aligned_table_whatever_its_labels(tmp_path):
+    """Files whose items' names differ in length (a DICOM's transfer_syntax and pixel_size_from,
+    a PNG's png_bit_depth, the common format and range): every item's value starts in one column,
+    past the longest name, over all the files given. A name past 10 characters pushed its value
+    out of the column the others kept."""
+    image, *_ = _signed_12()
+    dcm = _dicom(
+        tmp_path / "a_long_file_name_of_a_monochrome1_image.dcm",
+        image + 2048,
+        photometric="MONOCHROME1",
+        spacing=(0.1, 0.1),
+    )
+    png = _png(tmp_path / "b.png", (_texture() >> 4).astype(np.uint16))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (MONOCHROME1 said on stderr)
+        res = run_cli("info", dcm, png)
+    assert res.returncode == 0, res.stderr
+    reports = json.loads(run_cli("info", dcm, png, "--json").stdout)
+    labels = [k for r in reports for k in ("format", "frames", "range", "saturated", *r["metadata"])]
+    assert {"transfer_syntax", "pixel_size_from", "png_bit_depth", "format"} <= set(labels)
+    width = max(len(k) for k in labels)
+    items = [line for line in res.stdout.splitlines() if line.startswith("  ")]
+    assert len(items) == len(labels)
+    for line, label in zip(items, labels, strict=True):
+        assert line[2:].startswith(label), (line, label)
+        assert line[2 + len(label) : 3 + width].strip() == "" and line[3 + width] != " ", (line, width)

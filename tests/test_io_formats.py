@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import scipy.io
 import tifffile
-from conftest import ITEX_DIR, needs_itex, one_line_error, run_cli
+from conftest import ITEX_DIR, info_items, needs_itex, one_line_error, run_cli
 
 from radiokit.calibrate import Calibration
 from radiokit.errors import FormatError
@@ -2105,7 +2105,9 @@ def test_a_byte_swapped_itex_file_is_given_advice_the_user_can_follow(tmp_path):
     flags = f"--format raw --offset {offset} --shape 4 8 --byteorder '>'"
     assert flags in res.stderr, res.stderr
     res = run_cli("info", path, "--format", "raw", "--offset", offset, "--shape", 4, 8, "--byteorder", ">")
-    assert res.returncode == 0 and f"range      {frames.min()} .. {frames.max()}" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and f"range  {frames.min()} .. {frames.max()}" in info_items(res.stdout), (
+        res.stdout + res.stderr
+    )
     api = f"format='raw', offset={offset}, shape=(2, 4, 8), byteorder='>'"
     with pytest.warns(UserWarning, match=re.escape(api)):
         read(path)

@@ -237,3 +237,75 @@ def test_a_calibration_saved_into_a_file_object_names_the_file_its_bytes_are_for
         _calibration(30_000).save(io.BytesIO(), name=out)
     message = str(info.value)
     assert message.startswith(f"{out}: not written: the calibration's provenance"), message
+
+
+def test_from_frames_refuses_frames_its_provenance_could_not_name_before_averaging(tmp_path):
+    """``calibrate`` refuses files its provenance could not name before reading them; the Python
+    way, ``Calibration.from_frames(read(...), read(...))``, averaged them and the save then
+    refused the calibration. Here an HDF5 dataset's name (h5py writes one past the bound: the
+    provenance records the dataset read) is refused at from_frames, in one line naming the file,
+    by the rule the command applies (radiokit.calibrate.refuse_unnameable)."""
+    import h5py
+
+    name = "d" * (strict_json.MAX_CHARS + 100)
+    path = tmp_path / "long.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset(name, data=np.full((3, 8, 8), 100, np.uint16))
+        f.create_dataset("flats", data=np.full((3, 8, 8), 1000, np.uint16))
+    darks, flats = read(path, hdf5_dataset=name), read(path, hdf5_dataset="flats")
+    flats.data[...] = 50  # darker than the darks: a calibration averaged first is refused for that
+    with pytest.raises(ValueError) as info:
+        Calibration.from_frames(darks, flats)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and str(strict_json.MAX_CHARS) in message, message[:300]
+    assert "provenance" in message and len(message) < 2000, message[:300]
+
+
+def test_every_frame_s_source_index_names_its_file_where_the_sources_are_summarised(tmp_path, monkeypatch):
+    """A stack's ``sources`` summarised (a count, the first and last names and a digest: past the
+    bound, 11 000-odd files) lost the middle names its frames' ``source_index`` counts into, so a
+    frame of file 3 of 5 could not be traced. The HDF5 stack lists every name in ``/entry/sources``
+    (a dataset: no JSON bound), read back as ``StackRecord.sources``, and the summary says where.
+    Here the summary is forced at 5 files (the bound lowered: 11 000 files take minutes); each
+    file's frames are a level of their own, so a frame's values say which file it came from."""
+    import tifffile
+
+    import radiokit.correct as correct
+
+    rng = np.random.default_rng(3)
+    dark, flat = 100.0, 1100.0
+    cal = Calibration.from_frames(
+        np.rint(rng.normal(dark, 1, (4, 8, 8))).astype(np.uint16), np.full((4, 8, 8), flat, np.uint16)
+    )
+    levels = [300 + 150 * i for i in range(5)]
+    files = [tmp_path / f"projection_{i:02d}_{'x' * i}.tif" for i in range(5)]
+    for i, (f, level) in enumerate(zip(files, levels, strict=True)):
+        tifffile.imwrite(f, np.full((1 + i % 2, 8, 8), level, np.uint16), photometric="minisblack")
+    monkeypatch.setattr(correct, "SOURCES_LISTED_CHARS", 10)
+    out = tmp_path / "c.h5"
+    correct.correct_files(files, cal, out, domain="linear", progress=False)
+    rec = read_stack(out)
+    assert rec.meta["sources"]["count"] == 5 and rec.meta["sources"]["listed_in"] == "/entry/sources"
+    assert list(rec.sources) == [str(f) for f in files]
+    assert len(rec.data) == sum(1 + i % 2 for i in range(5))
+    for frame, si in zip(rec.data, rec.series["source_index"], strict=True):
+        level = levels[int(si)]  # the file it names: its transmission (level - dark) / (flat - dark)
+        expected = (level - np.median(cal.dark)) / (flat - np.median(cal.dark))
+        assert np.median(frame) == pytest.approx(expected, rel=0.01), (si, np.median(frame))
+
+
+@pytest.mark.parametrize("summarised", [False, True])
+def test_a_stacks_sources_read_back_whole_with_names_no_utf8_can_write(tmp_path, summarised):
+    """``/entry/sources`` holds each name's bytes as the file system gave them (a Latin-1 é is
+    no UTF-8), read back as Python names them (os.fsdecode); a listed ``sources`` reads back as
+    the same list."""
+    from radiokit.correct import stack_meta
+
+    names = [str(tmp_path / "a.tif"), os.fsdecode(b"/data/caf\xe9.tif"), "/data/z\nnewline.tif"]
+    meta = stack_meta("log", {}, names, listed_in="/entry/sources")
+    if summarised:
+        meta["sources"] = {"count": 3, "first": names[0], "last": names[-1], "listed_in": "/entry/sources"}
+    out = tmp_path / "s.h5"
+    with StackWriter(out, (4, 4), meta=meta, sources=names) as w:
+        w.append(np.zeros((4, 4), np.float32), source_index=np.int32(1))
+    assert list(read_stack(out).sources) == names

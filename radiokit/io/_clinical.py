@@ -101,9 +101,6 @@ def check_png(path, header: dict, budget) -> None:
         )
 
 
-#: the chunks that make a PNG's pixels; the rest (text, ICC profiles, gamma, APNG's frames) are
-#: dropped before OpenCV sees the file (:func:`decode_png`)
-_PIXEL_CHUNKS = (b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND")
 #: Adam7's passes: (first row, first column, row step, column step)
 _ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
 _PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
@@ -123,28 +120,71 @@ def png_pixel_bytes(header: dict, interlaced: bool) -> int:
     return total
 
 
-def _check_idat_stream(path, header: dict, interlaced: bool, idat) -> None:
-    """Refuse pixel data whose zlib stream ends (or breaks) before the image does. Why: a cut
-    stream inside a chunk whose CRC is right passed :func:`check_png_chunks`, and libpng printed
-    "libpng error: Not enough image data" before the one line. Inflated a block at a time,
-    counted and dropped: no more memory than a block."""
-    need, got = png_pixel_bytes(header, interlaced), 0
+def _inflated(path, need: int, idat):
+    """IDAT's zlib stream (``idat``, its chunks' data) inflated, a piece at a time, up to ``need``
+    bytes (:func:`png_pixel_bytes`: the header's size, held to the budget before this; a stream
+    inflating to more is cut there, never held). Refused in one line where the stream ends (or
+    breaks) before the image does. Why: a cut stream inside a chunk whose CRC is right passed
+    :func:`check_png_chunks`, and libpng printed "libpng error: Not enough image data" before
+    the one line."""
+    got = 0
     inflate = zlib.decompressobj()
     try:
         for piece in idat:
-            data = inflate.decompress(piece, 1 << 22)
-            got += len(data)
-            while inflate.unconsumed_tail and got < need:
-                data = inflate.decompress(inflate.unconsumed_tail, 1 << 22)
+            data = inflate.decompress(piece, min(need - got, 1 << 20))
+            while data:
                 got += len(data)
+                yield data
+                if got >= need or not inflate.unconsumed_tail:
+                    break
+                data = inflate.decompress(inflate.unconsumed_tail, min(need - got, 1 << 20))
             if got >= need:
-                break
+                return
     except zlib.error as exc:
         raise FormatError(path, f"a PNG whose pixel data does not inflate ({exc}): corrupt") from None
-    if got < need:
-        raise FormatError(
-            path, f"a PNG whose pixel data ends early: {got} of its image's {need} bytes (truncated or corrupt)"
-        )
+    raise FormatError(
+        path, f"a PNG whose pixel data ends early: {got} of its image's {need} bytes (truncated or corrupt)"
+    )
+
+
+#: a stored deflate block's most bytes (its LEN is 16 bits)
+_STORED_BLOCK = 0xFFFF
+
+
+def _stored_png(path, header: dict, interlaced: bool, head: bytes, chunks: list, idat) -> np.ndarray:
+    """The PNG libpng is given: the signature and IHDR (``head``), the other pixel ``chunks``
+    (PLTE, tRNS) and one IDAT holding the image's filtered rows, inflated from the file's stream
+    (``idat``, :func:`_inflated`) straight into stored deflate blocks, then IEND. Why: radiokit
+    must inflate the stream to know it ends where the image does, and libpng inflated it again;
+    a stored block it copies (benchmarks/README.md, bench_png_read.py: a quarter of the time).
+    The buffer is the rows and a few bytes a block: no other copy of them is held."""
+    need = png_pixel_bytes(header, interlaced)
+    blocks = max(1, -(-need // _STORED_BLOCK))
+    stream = 2 + 5 * blocks + need + 4  # zlib header, each block's header, the rows, Adler-32
+    pre = b"".join([head, *chunks])
+    out = bytearray(len(pre) + 8 + stream + 4 + 12)
+    out[: len(pre)] = pre
+    at = len(pre)
+    struct.pack_into(">I4s2s", out, at, stream, b"IDAT", b"\x78\x01")  # deflate, 32 KiB window (0x7801 % 31 == 0)
+    first = at + 10  # the first block's header
+    for k in range(blocks):
+        n = min(_STORED_BLOCK, need - k * _STORED_BLOCK)
+        struct.pack_into("<BHH", out, first + k * (5 + _STORED_BLOCK), k == blocks - 1, n, n ^ 0xFFFF)  # BTYPE 00
+    got, adler = 0, 1
+    for data in _inflated(path, need, idat):
+        adler = zlib.adler32(data, adler)
+        view = memoryview(data)
+        while view:  # into its block(s): row byte j lies past j // block + 1 block headers
+            k, j = divmod(got, _STORED_BLOCK)
+            n = min(len(view), _STORED_BLOCK - j)
+            pos = first + k * (5 + _STORED_BLOCK) + 5 + j
+            out[pos : pos + n] = view[:n]
+            view, got = view[n:], got + n
+    end = first + 5 * blocks + need
+    struct.pack_into(">I", out, end, adler)
+    struct.pack_into(">I", out, end + 4, zlib.crc32(memoryview(out)[at + 4 : end + 4]))
+    struct.pack_into(">I4sI", out, end + 8, 0, b"IEND", zlib.crc32(b"IEND"))
+    return np.frombuffer(out, np.uint8)
 
 
 def check_png_chunks(path, buf) -> list:
@@ -181,13 +221,13 @@ def decode_png(path, header: dict) -> np.ndarray:
     view = memoryview(raw)
     spans = check_png_chunks(path, view)
     interlaced = bool(raw[28])  # IHDR's last byte (png_header read its others)
-    _check_idat_stream(path, header, interlaced, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
     # the pixels' chunks alone: libpng inflates text and ICC chunks (a 100 KB zTXt may hold 100 MB)
     # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
     # incorrect sRGB profile"); gamma is a display's business, never applied to the values
-    kept = [view[a:b] for k, a, b in spans if k in _PIXEL_CHUNKS]
-    if len(kept) < len(spans):
-        raw = np.frombuffer(b"".join([bytes(view[:8]), *kept]), np.uint8)
+    head = bytes(view[: spans[0][2]])  # the signature and IHDR (check_png_chunks: IHDR is the first chunk)
+    kept = [bytes(view[a:b]) for k, a, b in spans[1:] if k in (b"PLTE", b"tRNS")]
+    raw = _stored_png(path, header, interlaced, head, kept, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
+    del view  # (the file's bytes: let go before the pixels are decoded beside the PNG built of them)
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
@@ -371,7 +411,12 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         "photometric": photometric,
         "modality": str(ds.get("Modality", "")),
     }
-    if stored < allocated and not signed:
+    if signed:
+        # two's complement in BitsStored bits (pydicom extends the sign): the ADC's range is
+        # -2**(stored - 1)..2**(stored - 1) - 1, whatever the word (radiokit.calibrate.declared_range);
+        # judged as unsigned, a signed 12-bit image's clip at 2047 was never saturated (against 4095)
+        meta["bit_depth"], meta["bit_depth_signed"] = stored, True
+    elif stored < allocated:
         meta["bit_depth"] = stored  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
     if (slope, intercept) != (1, 0):
         # the Modality LUT the file states: values = stored * slope + intercept (value_scaling

@@ -7,6 +7,8 @@ The HDF5 layout (``radiokit correct``'s output):
 ``/entry/data`` (NXdata, ``@signal = "data"``; the writer's ``meta`` as attributes, dicts as JSON)
     ``data`` (n, rows, cols), one frame per chunk (the plot);
     per-frame series (n,) named by :meth:`StackWriter.append`'s keywords (e.g. ``step``).
+``/entry/sources`` (k,) strings: the input files' names (``sources``), which a ``source_index``
+    series counts into; each name's bytes as the file system gave them (``os.fsencode``).
 """
 
 from __future__ import annotations
@@ -27,10 +29,12 @@ from radiokit.errors import FormatError
 from radiokit.io._atomic import OutputError, atomic_path
 from radiokit.io._layout import ReadBudget, open_layout, text
 
-__all__ = ["write_tiff", "StackWriter", "StackRecord", "read_stack", "STACK", "STACK_FRAMES"]
+__all__ = ["write_tiff", "StackWriter", "StackRecord", "read_stack", "STACK", "STACK_FRAMES", "SOURCES"]
 
 STACK = "entry/data"
 STACK_FRAMES = f"{STACK}/data"
+#: every input file's name, in the order a per-frame ``source_index`` counts them (StackWriter's ``sources``)
+SOURCES = "entry/sources"
 
 
 def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=False, inputs=()) -> Path:
@@ -63,7 +67,9 @@ class StackWriter:
     ``pixel_mask`` (HDF5 only; a TIFF stack has no place for it) is written once as
     ``/entry/instrument/detector/pixel_mask``, with ``pixel_mask_attrs`` as its attributes.
     ``series_attrs`` (HDF5 only) maps a per-frame series' name to its dataset's attributes (what
-    a sentinel value in it means).
+    a sentinel value in it means). ``sources`` (HDF5 only: a TIFF stack keeps no per-frame series
+    to count into them) are the input files' names, written whole as ``/entry/sources`` (no JSON
+    bound: ``meta`` may summarise them, :func:`radiokit.correct.stack_meta`).
 
     JSON is strict (:mod:`radiokit._json`): a non-finite number is null, and a dict names it in its
     ``"not_finite"`` and reads back as the number; a list attribute cannot carry that map, so a
@@ -93,8 +99,10 @@ class StackWriter:
         pixel_mask=None,
         pixel_mask_attrs=None,
         series_attrs=None,
+        sources=None,
     ):
         self.path = Path(path)
+        self._sources = None if sources is None else [os.fsencode(str(n)) for n in sources]
         self._series_attrs = {name: dict(attrs) for name, attrs in (series_attrs or {}).items()}
         self._pixel_mask = (pixel_mask, dict(pixel_mask_attrs or {}))
         self.frame_shape = tuple(int(s) for s in frame_shape)
@@ -158,6 +166,10 @@ class StackWriter:
                 # strict JSON (radiokit._json): a non-finite number is null, named in "not_finite"
                 grp.attrs[key] = self._meta_json.get(key, value)
             self._write_pixel_mask(entry)
+            if self._sources is not None:  # each name's bytes: a name no UTF-8 can write is still its file's
+                entry.create_dataset(
+                    SOURCES.rsplit("/", 1)[1], data=np.array(self._sources, dtype=object), dtype=h5py.string_dtype()
+                )
             self._alloc = int(n_frames or 0)
             dcpl = None
             if self._alloc:  # all chunks allocated now, never filled: frames can be written in place
@@ -290,11 +302,15 @@ class StackRecord:
         The per-frame series (e.g. ``step``, ``nonpositive``).
     meta : mapping
         The writer's ``meta`` (JSON text parsed back into dicts and lists).
+    sources : tuple of str
+        The input files' names a ``source_index`` series counts into: ``/entry/sources`` (every
+        one, as ``os.fsdecode`` names them), else ``meta["sources"]`` where it is a list, else ().
     """
 
     data: np.ndarray
     series: Mapping = field(default_factory=dict)
     meta: Mapping = field(default_factory=dict)
+    sources: tuple = ()
 
 
 def read_stack(path, *, allow_external=False) -> StackRecord:
@@ -325,7 +341,25 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
                     raise FormatError(path, f"{named} holds {s.shape[0]} values for {ds.shape[0]} frames")
                 series[name] = budget.read(s)
         meta = {k: _attr(path, k, v) for k, v in h5[STACK].attrs.items() if k not in ("NX_class", "signal")}
-        return StackRecord(ds[()], series, meta)  # its bytes were counted first
+        listed = meta.get("sources")
+        sources = (
+            _sources(path, h5, budget, allow_external) if SOURCES in h5 else listed if isinstance(listed, list) else ()
+        )
+        return StackRecord(ds[()], series, meta, tuple(map(str, sources)))  # its bytes were counted first
+
+
+def _sources(path, h5, budget, allow_external) -> list[str]:
+    """``/entry/sources``, a name a string, as :func:`os.fsdecode` names a file (its bytes as
+    written); refused in one line where it is no 1-D dataset of strings."""
+    from radiokit.io._experiment import check_links
+
+    check_links(path, h5, SOURCES, allow_external)
+    ds = h5[SOURCES]
+    if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 or h5py.check_string_dtype(ds.dtype) is None:
+        raise FormatError(path, f"/{SOURCES} is not a list of file names (a 1-D dataset of strings)")
+    # its storage's size (the names' bytes are on disk: no more than the file holds are read)
+    budget.reserve(max(ds.id.get_storage_size(), ds.shape[0] * 16), f"/{SOURCES} ({ds.shape[0]} names)")
+    return [os.fsdecode(n) if isinstance(n, bytes) else str(n) for n in ds[()]]
 
 
 def _attr(path, key, value):
