@@ -411,13 +411,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         "photometric": photometric,
         "modality": str(ds.get("Modality", "")),
     }
-    if signed:
-        # two's complement in BitsStored bits (pydicom extends the sign): the ADC's range is
-        # -2**(stored - 1)..2**(stored - 1) - 1, whatever the word (radiokit.calibrate.declared_range);
-        # judged as unsigned, a signed 12-bit image's clip at 2047 was never saturated (against 4095)
-        meta["bit_depth"], meta["bit_depth_signed"] = stored, True
-    elif stored < allocated:
-        meta["bit_depth"] = stored  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
+    meta.update(_bit_depth_meta(stored, allocated, signed))
     if (slope, intercept) != (1, 0):
         # the Modality LUT the file states: values = stored * slope + intercept (value_scaling
         # judges saturation on the stored counts recovered from them)
@@ -435,6 +429,18 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
     return ds, geometry, meta
+
+
+def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
+    """What the saturation judgement takes as the ADC's range, from BitsStored."""
+    if signed:
+        # two's complement in BitsStored bits (pydicom extends the sign): the ADC's range is
+        # -2**(stored - 1)..2**(stored - 1) - 1, whatever the word (radiokit.calibrate.declared_range);
+        # judged as unsigned, a signed 12-bit image's clip at 2047 was never saturated (against 4095)
+        return {"bit_depth": stored, "bit_depth_signed": True}
+    if stored < allocated:
+        return {"bit_depth": stored}  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
+    return {}
 
 
 def _check_pixel_length(path, ds, syntax, declared: int) -> None:
