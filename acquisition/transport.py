@@ -687,10 +687,7 @@ class SerialTransport:
         if self._closing:  # closed meanwhile by another thread: not opened again behind its back
             raise _ClosedUnderIt("the link was closed before the port was reopened")
         # before pyserial opens the port (DTR, RTS, a flush): held by another process, nothing is touched
-        if self._hold is None:
-            self._hold = hold_port(self.url)
-        else:
-            self._hold.renew()
+        self._renew_hold()
         try:
             ser = _serial_for_url(self.url, self.log)
             ser.baudrate = self.baudrate
@@ -749,6 +746,26 @@ class SerialTransport:
         self._last_exchange = time.monotonic()
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
+    def _renew_hold(self) -> None:
+        """This link's share of the port's lock taken, or renewed (:meth:`PortHold.renew`), before
+        or after a (re)open -- under the step lock, and refused once the link is marked closing.
+        Why: a close past its wait marks the link closing and lets the share go under that lock;
+        renewed outside it, between the reopen's look at the mark and the renewal, the lock was
+        taken again after the close had returned, and another program was refused the port until
+        the reopen noticed (review s54).
+
+        Raises
+        ------
+        _ClosedUnderIt
+            The link was closed meanwhile: nothing taken."""
+        with self._io:
+            if self._closing:
+                raise _ClosedUnderIt("the link was closed before the port was reopened")
+            if self._hold is None:
+                self._hold = hold_port(self.url)
+            else:
+                self._hold.renew()
+
     def _hold_opened(self, ser) -> None:
         """The lock held on the very device ``ser`` opened, taken now if the lock found nothing to
         take before the open (the node, or its by-id link, came -- udev a moment late -- between
@@ -769,10 +786,7 @@ class SerialTransport:
             return
         if self._on(opened):
             return
-        if self._hold is None:
-            self._hold = hold_port(self.url)
-        else:
-            self._hold.renew()
+        self._renew_hold()
         if self._hold is None or self._hold.fd is None:
             # still nothing to lock (the node gone again, or flock unsupported there): as before
             return
