@@ -5881,7 +5881,10 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
             now[0] += 0.25
             model.inject_after(word, step)
 
-    with PtyServer(model) as server, driver(server, dialect, poll_s=0.005, stable_timeout_s=5.0) as src:
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0) as src,
+    ):
         model.inject_after(word, step)
         with pytest.raises(SourceFault, match=r"beam dropped while ramping up: measured current 0 µA") as caught:
             src.on(60, 250)
