@@ -760,6 +760,11 @@ class SerialTransport:
             The link was closed meanwhile: nothing taken."""
         with self._io:
             if self._closing:
+                # the close let its own share go: one here was taken since (a close from a signal's
+                # handler inside hold_port, before the share was recorded), so it goes too
+                hold, self._hold = self._hold, None
+                if hold is not None:
+                    hold.release()
                 raise _ClosedUnderIt("the link was closed before the port was reopened")
             if self._hold is None:
                 self._hold = hold_port(self.url)
