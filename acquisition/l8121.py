@@ -800,6 +800,37 @@ def _beam_above(kv: float, ua: float, set_kv: float, set_ua: float, drop_fractio
     return None
 
 
+def _fallen_back(
+    kv: float,
+    ua: float,
+    highest: tuple[float, float],
+    tolerance: tuple[float, float],
+    low: tuple[float, float],
+    drop_fraction: float,
+) -> str | None:
+    """What shows a beam that fell back while it ramped (``highest``: the readings' highest so far
+    in the ramp; ``low``: the lower of the setting and the one it ramps from), or None.
+
+    L8121.md: the measured values "ramp towards the set values" after XON or a change, so a ramp
+    stays between the two settings and a reading never falls back from one before it by more
+    than a reading's tolerance. One that fell back that far AND lies under the beam monitor's
+    drop bound (``drop_fraction`` of the lower setting: what :meth:`L8121.check` calls dropped
+    once the beam is stable) is a dropped beam, not a ramp still climbing: B's STS reads XON all
+    the while (it names no dropped beam), and only the stable wait's time-out caught it, up to
+    ``stable_timeout_s`` later. Both conditions: the tolerance keeps a reading's jitter from
+    tripping, the bound a legitimate ramp down to a lower setting."""
+    for value, top, tol, setting, unit, what in (
+        (ua, highest[1], tolerance[1], low[1], "µA", "current"),
+        (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
+    ):
+        if value < drop_fraction * setting and top - value > tol:
+            return (
+                f"measured {what} {value:g} {unit} after {top:g} {unit}, below {drop_fraction:.0%} of the set "
+                f"{setting} {unit}"
+            )
+    return None
+
+
 # -- the declarations -----------------------------------------------------------------------------
 class Query:
     """A query: ``command`` and the parser of its reply.
@@ -3200,6 +3231,7 @@ class L8121:
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
+        highest = (-math.inf, -math.inf)  # the measured kV and µA at their highest in this ramp
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3214,6 +3246,12 @@ class L8121:
             above = _beam_above(m_kv, m_ua, *self._beam_span((kv, ua))[1], c.beam_drop_fraction)
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
+            highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
+            fell = _fallen_back(
+                m_kv, m_ua, highest, (tol_kv, tol_ua), self._beam_span((kv, ua))[0], c.beam_drop_fraction
+            )
+            if fell is not None:
+                self._trip(f"beam dropped while ramping up: {fell}")
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():
                 self._trip("interlock open")

@@ -654,27 +654,31 @@ class SerialTransport:
         device now behind the port (the path may lead elsewhere since), and its refusal closes the
         port and is raised, as is a link lost during the check (a :class:`DeviceError`, the port
         left closed: pyserial's exception named no port and reached the operator as a traceback)."""
+        me, since = threading.get_ident(), time.monotonic()
         with self._lock:  # the check is an exchange: not interleaved with another thread's
+            # recorded with no call between, as query() does (see there)
+            self._owner, self._running, self._closing, self._close_after_query = me, (None, since), False, False
             try:
-                self._taken(None)
-                if not self.is_open:
-                    try:
-                        self._reopen(None, None)
-                    except _LINK_ERRORS as exc:
-                        self._close_port()
-                        raise DeviceError(
-                            f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
-                        ) from exc
+                try:
+                    if not self.is_open:
+                        try:
+                            self._reopen(None, None)
+                        except _LINK_ERRORS as exc:
+                            self._close_port()
+                            raise DeviceError(
+                                f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
+                            ) from exc
+                finally:
+                    self._close_if_asked()
             finally:
-                self._given_back()
+                self._owner = self._running = None
 
-    def _taken(self, command: str | None) -> None:
-        """The exchange's lock just taken by this thread for ``command`` (None: an open)."""
-        self._owner, self._running, self._closing = threading.get_ident(), (command, time.monotonic()), False
-
-    def _given_back(self) -> None:
-        """Before the exchange's lock is released: a close left to this query's end is done now."""
-        self._owner = self._running = None
+    def _close_if_asked(self) -> None:
+        """At a query's end, the exchange's lock still held and recorded: a close a signal's
+        handler left to it (:attr:`_close_after_query`) is done now. The exchange is over: a
+        handler's close from here on (the calls that follow are where one runs) closes the port
+        at once, not left to an end that has passed."""
+        self._running = None
         if self._close_after_query:
             self._close_after_query = False
             self._close_all()
@@ -683,10 +687,7 @@ class SerialTransport:
         if self._closing:  # closed meanwhile by another thread: not opened again behind its back
             raise _ClosedUnderIt("the link was closed before the port was reopened")
         # before pyserial opens the port (DTR, RTS, a flush): held by another process, nothing is touched
-        if self._hold is None:
-            self._hold = hold_port(self.url)
-        else:
-            self._hold.renew()
+        self._renew_hold()
         try:
             ser = _serial_for_url(self.url, self.log)
             ser.baudrate = self.baudrate
@@ -745,6 +746,31 @@ class SerialTransport:
         self._last_exchange = time.monotonic()
         self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
 
+    def _renew_hold(self) -> None:
+        """This link's share of the port's lock taken, or renewed (:meth:`PortHold.renew`), before
+        or after a (re)open -- under the step lock, and refused once the link is marked closing.
+        Why: a close past its wait marks the link closing and lets the share go under that lock;
+        renewed outside it, between the reopen's look at the mark and the renewal, the lock was
+        taken again after the close had returned, and another program was refused the port until
+        the reopen noticed (review s54).
+
+        Raises
+        ------
+        _ClosedUnderIt
+            The link was closed meanwhile: nothing taken."""
+        with self._io:
+            if self._closing:
+                # the close let its own share go: one here was taken since (a close from a signal's
+                # handler inside hold_port, before the share was recorded), so it goes too
+                hold, self._hold = self._hold, None
+                if hold is not None:
+                    hold.release()
+                raise _ClosedUnderIt("the link was closed before the port was reopened")
+            if self._hold is None:
+                self._hold = hold_port(self.url)
+            else:
+                self._hold.renew()
+
     def _hold_opened(self, ser) -> None:
         """The lock held on the very device ``ser`` opened, taken now if the lock found nothing to
         take before the open (the node, or its by-id link, came -- udev a moment late -- between
@@ -765,10 +791,7 @@ class SerialTransport:
             return
         if self._on(opened):
             return
-        if self._hold is None:
-            self._hold = hold_port(self.url)
-        else:
-            self._hold.renew()
+        self._renew_hold()
         if self._hold is None or self._hold.fd is None:
             # still nothing to lock (the node gone again, or flock unsupported there): as before
             return
@@ -986,12 +1009,27 @@ class SerialTransport:
         if any(end.decode() in command for end in _LINE_ENDS):
             raise ValueError(f"{self.url}: command {command!r} contains a line end")
         payload = self._payload(command)
+        me, since = threading.get_ident(), time.monotonic()
         with self._lock:
+            # The lock's holder recorded with no call between the lock taken and the record, nor
+            # between the record cleared and the lock's release (the with block's end): CPython
+            # runs a signal's handler only as a function starts, after a call, or at a loop's jump
+            # back. A record made by a call (_taken, before) could be cut short as it started: the
+            # lock then held by a thread not recorded (a handler's close waited a whole exchange
+            # for its own thread, and the record that followed cleared its closing mark, the port
+            # reopened) or recorded to a thread done with it (a close that followed took an
+            # interrupted XOF for a switch-off still running, and left the port open). Review s54;
+            # tests/test_transport_stop_taking.py
+            self._owner, self._running, self._closing, self._close_after_query = me, (command, since), False, False
             try:
-                self._taken(command)
-                return self._query(command, payload)
+                try:
+                    # the query's start once the lock is held (a switch-off's close waits from here)
+                    self._running = (command, time.monotonic())
+                    return self._query(command, payload)
+                finally:
+                    self._close_if_asked()
             finally:
-                self._given_back()
+                self._owner = self._running = None
 
     def _query(self, command: str, payload: bytes) -> str:
         """:meth:`query`'s attempts, the exchange's lock held."""

@@ -2210,9 +2210,8 @@ def _give_back(found: dict) -> None:
     the handlers are then set all the same and its exception raised after them (the first, if
     several). Two at once are held; a third at once may leave a handler unset (Python code cannot
     hold any number together), but never a signal blocked."""
-    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - Windows: nothing to block with
-        for sig, handler in found.items():
-            signal.signal(sig, handler)
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: nothing to block with
+        _give_back_unmasked(found)
         return
     taken = set(found)
     blocked = None  # the taken signals the caller had blocked already: left blocked
@@ -2249,6 +2248,48 @@ def _give_back(found: dict) -> None:
                     signal.pthread_sigmask(
                         signal.SIG_UNBLOCK, taken - blocked
                     )  # a pending stop: the caller's handler, now
+            finally:
+                if error is not None:
+                    raise error
+
+
+def _give_back_unmasked(found: dict) -> None:
+    """:func:`_give_back` where no signal can be blocked (Windows: no ``pthread_sigmask``). Every
+    signal first goes to a handler that only notes it, then each to the caller's; a stop noted
+    meanwhile is raised (``signal.raise_signal``) once all are back, to the caller's handler,
+    whose own rules apply. So a stop goes to the command's handler only as the notes are set,
+    one call per signal, before any work -- on Windows, SIGINT and SIGTERM: two calls -- never
+    to a command that has finished its give-back; and one the caller's handler raises for (a
+    Ctrl-C to a handler back already) is carried past the rest and raised after them, as
+    :func:`_give_back` does. A stop landing in the raise's own moment is the caller's, in place."""
+    came: list[int] = []
+
+    def note(signum, frame):
+        came.append(signum)
+
+    todo = [(sig, note) for sig in found] + list(found.items())
+    error: BaseException | None = None
+    try:
+        while todo:
+            try:
+                while todo:
+                    signal.signal(*todo[0])  # set again if a raise lands after it: the same handler
+                    del todo[0]
+            except BaseException as exc:  # a caller's handler back already ran and raised: carry on
+                error = error or exc
+    finally:
+        # (a raise at the loop's jump back, outside the try above: the handlers left are put back here)
+        try:
+            while todo:
+                try:
+                    signal.signal(*todo[0])
+                    del todo[0]
+                except BaseException as exc:
+                    error = error or exc
+        finally:
+            try:
+                for signum in dict.fromkeys(came):  # each stop once, in the order they came
+                    signal.raise_signal(signum)
             finally:
                 if error is not None:
                     raise error

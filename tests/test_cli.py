@@ -1944,3 +1944,67 @@ def test_help_lists_format_with_the_general_options_not_the_raw_ones(command):
         "--byteorder",
         "--offset",
     }
+
+
+def test_the_give_back_without_a_signal_mask_puts_every_handler_back_and_loses_no_stop(monkeypatch):
+    """Windows has no ``pthread_sigmask``: the caller's handlers were put back one by one, and a
+    Ctrl-C landing midway (the caller's handler, back already, raises) cut the loop short -- the
+    handlers after it stayed the command's -- while a stop on a handler not yet put back went to
+    the command's, which had finished. Now every signal first goes to a handler that notes it,
+    then each to the caller's, a raise meanwhile carried past the rest; a stop noted goes to the
+    caller's handler once all are back. The branch forced on Linux (``pthread_sigmask`` taken
+    away from ``signal`` for the call); a profile hook notes a SIGHUP and a SIGINT at once, as
+    their C handler does, when the caller's SIGINT handler is back and its SIGHUP one not yet."""
+    import _thread
+    import collections
+    import signal
+
+    from radiokit.cli import _TAKEN, _give_back
+
+    got, commands = [], []
+
+    def interrupt(signum, frame):  # the caller's Ctrl-C: Python's own way
+        got.append(signum)
+        raise KeyboardInterrupt("the caller's")
+
+    def mine(signum, frame):  # the caller's other handlers record
+        got.append(signum)
+
+    def command(signum, frame):  # the finished command's handler: it must get nothing
+        commands.append(signum)
+
+    ours = {sig: interrupt if sig == signal.SIGINT else mine for sig in _TAKEN}
+    stops = [signal.SIGHUP, signal.SIGINT]
+    sent = []
+
+    def hook(frame, event, arg):
+        if (
+            _puts_a_handler_back(frame, event, arg)
+            and not sent
+            and signal.getsignal(signal.SIGINT) is interrupt
+            and signal.getsignal(signal.SIGHUP) is not mine
+        ):
+            sent.extend(stops)
+            collections.deque(map(_thread.interrupt_main, stops), maxlen=0)  # both noted, none run yet
+
+    before = {sig: signal.signal(sig, command) for sig in _TAKEN}
+    outcome = None
+    try:
+        with monkeypatch.context() as m:
+            m.delattr(signal, "pthread_sigmask")
+            sys.setprofile(hook)
+            try:
+                _give_back(ours)
+            except KeyboardInterrupt as exc:
+                outcome = str(exc)
+            finally:
+                sys.setprofile(None)
+        after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert sent == stops, "the hook never saw a handler put back"
+    assert after == ours, after
+    assert commands == []  # nothing went to the finished command's handler
+    assert sorted(got) == sorted(stops), got  # each stop reached the caller's handler, once
+    assert outcome == "the caller's"

@@ -5858,3 +5858,37 @@ def test_a_blind_switch_off_is_counted_as_written():
             assert link.commands_written == 1
         finally:
             link.close()
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_reading(dialect):
+    """L8121.md: the measured values "ramp towards the set values" after XON. A current that had
+    ramped past the beam monitor's drop bound and falls back under it (an emitter failing as the
+    tube comes on) is no ramp: before, only the stable wait's time-out (15 s by default) caught it,
+    B's STS still reading XON. Now the reading that shows it switches off, the fault named. The
+    emulator's clock moves a quarter of its ramp after each reading of the current (SAR; B's SCU),
+    and the beam drops after the one that read it at 75 %: no timing in the test."""
+    now = [0.0]
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
+    word = "SCU" if dialect == "B" else "SAR"
+    seen = []
+
+    def step():
+        seen.append(model.measured()[1])
+        if seen[-1] >= 0.75 * 250:
+            model.drop_beam()
+        else:
+            now[0] += 0.25
+            model.inject_after(word, step)
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0) as src,
+    ):
+        model.inject_after(word, step)
+        with pytest.raises(SourceFault, match=r"beam dropped while ramping up: measured current 0 µA") as caught:
+            src.on(60, 250)
+        after = commands_after(model, word)
+    assert seen[-1] >= 0.75 * 250 and model.measured() == (0.0, 0.0), seen
+    assert after[0] == "XOF", after  # at the reading that showed it: nothing asked before the switch-off
+    assert "X-rays switched off" in str(caught.value) and not model.xray_on
