@@ -475,3 +475,90 @@ def test_damaged_frame_headers_in_a_dicom_are_one_line_refusals(tmp_path, capfd,
             except FormatError as exc:
                 assert path.name in str(exc) and "\n" not in str(exc), (at, str(exc))
     assert capfd.readouterr().err == ""
+
+
+# -- review s54rvjpg: writers' conventions and damaged files --------------------------------------
+@pytest.mark.parametrize("name", ["sv1", "jls", "j2k"])
+def test_a_truncated_compressed_dicom_is_said_to_be_truncated(tmp_path, name):
+    """A compressed DICOM cut short (a copy or transfer interrupted) loses its encapsulated pixel
+    element's sequence delimiter; pydicom then drops the element with a warning of its own. That
+    is a truncated image, not "no pixel data (a report...)": one line saying so, nothing else."""
+    path = _dicom(tmp_path / "cut.dcm", _counts(n=2), *LOSSLESS[name])
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) * 3 // 4])
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(FormatError, match=r"cut\.dcm: .*pixel data.*truncated") as info:
+            read(path)
+    assert "report" not in str(info.value) and "\n" not in str(info.value)
+    assert not said, [str(w.message) for w in said]
+    res = run_cli("info", path)
+    assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls", "j2k"])
+@pytest.mark.parametrize("declared", [None, 1])
+@pytest.mark.parametrize("bot", [True, False])
+def test_frames_beyond_number_of_frames_are_not_silently_dropped(tmp_path, name, declared, bot):
+    """Two frames, one fragment each, under a NumberOfFrames that is absent (1 by default) or 1.
+    With a Basic Offset Table (two offsets) frame 0 is the first fragment and the second is never
+    read; without one, frame 0 is both fragments joined, two codestreams one after the other,
+    which a decoder reads as the first alone. Either way refused in one line, not read as one
+    frame. One frame in several fragments (odd lengths padded) still reads."""
+    import pydicom
+    from pydicom.encaps import encapsulate
+
+    stack = _counts(n=2)
+    syntax, encode = LOSSLESS[name]
+    path = _dicom(tmp_path / "nf.dcm", stack, syntax, encode)
+    ds = pydicom.dcmread(path)
+    ds.PixelData = encapsulate([encode(f) for f in stack], has_bot=bot)
+    if declared is None:
+        del ds.NumberOfFrames
+    else:
+        ds.NumberOfFrames = declared
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"nf\.dcm: .*\b2 (frames|codestreams).*NumberOfFrames") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    stream = encode(stack[0])
+    stream += b"\x00" * (len(stream) % 2 == 0)  # odd: its last fragment padded
+    ds.PixelData = encapsulate([stream], fragments_per_frame=3, has_bot=bot)
+    ds.save_as(path)
+    np.testing.assert_array_equal(_quiet_read(path).data, stack[:1])
+
+
+@pytest.mark.parametrize("codec", ["jls", "sv1", "j2k"])
+def test_signed_counts_whose_unused_bits_are_zero_are_sign_extended_from_bits_stored(tmp_path, codec):
+    """PixelRepresentation 1, BitsStored 12, each 16-bit word holding the 12-bit two's complement
+    pattern with its unused high bits zero (PS3.5 8.1.1 leaves them undefined), compressed at 16
+    bits (CharLS's and OpenJPEG's precision for uint16 input). The sign is bit 11, as pydicom and
+    other readers take it for such words uncompressed: -1948..1852 back, not 0..4095."""
+    signed = _counts(n=1).astype(np.int16) - 2048
+    words = signed.view(np.uint16) & 0xFFF
+    encode = {
+        "jls": lambda f: imagecodecs.jpegls_encode(f),
+        "sv1": lambda f: imagecodecs.ljpeg_encode(f, bitspersample=16),
+        "j2k": lambda f: imagecodecs.jpeg2k_encode(f, level=0, codecformat="J2K"),
+    }[codec]
+    assert bytes_header_of(encode(words[0]))["precision"] == 16
+    path = _dicom(tmp_path / "s.dcm", words, LOSSLESS[codec][0], encode, signed=True)
+    np.testing.assert_array_equal(_quiet_read(path).data, signed)
+
+
+def test_an_unsigned_dicom_whose_jpeg_2000_says_signed_reads_its_counts(tmp_path):
+    """PixelRepresentation 0 over a JPEG 2000 whose SIZ says signed (a writer's mislabel pydicom
+    corrects): the stream's bits are the counts, 12 of them unsigned, not int16 values wrapped to
+    uint16 (65000s)."""
+    counts = _counts(n=1)
+    as_signed = ((counts.astype(np.int32) << 20) >> 20).astype(np.int16)  # the same 12 bits, read signed
+    encode = lambda f: imagecodecs.jpeg2k_encode(f, level=0, codecformat="J2K", bitspersample=12)
+    assert bytes_header_of(encode(as_signed[0]))["signed"]
+    path = _dicom(tmp_path / "u.dcm", as_signed, uid.JPEG2000Lossless, encode)
+    np.testing.assert_array_equal(_quiet_read(path).data, counts)
+
+
+def bytes_header_of(stream) -> dict:
+    from radiokit.io._codecs import bytes_header
+
+    return bytes_header(stream)

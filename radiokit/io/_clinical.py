@@ -315,10 +315,24 @@ def _read_dataset(path):
     with open(path, "rb") as fh:
         bare = fh.read(132)[128:132] != b"DICM"
     try:
-        # values over 1 KB (the pixels) are read when asked for, not now
-        ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            # values over 1 KB (the pixels) are read when asked for, not now
+            ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
     except (InvalidDicomError, EOFError, OSError, ValueError, struct.error) as exc:
         raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    # A file cut short inside its encapsulated (compressed, RLE) pixel element: pydicom warns
+    # "End of file reached before delimiter" and drops the element, which then read as a file of
+    # no pixels at all, "a report", after a second line of pydicom's own.
+    cut = [w for w in said if "End of file reached before delimiter" in str(w.message)]
+    if cut and "PixelData" not in ds:
+        raise FormatError(
+            path,
+            "a DICOM file that ends inside its encapsulated pixel data, before the sequence delimiter "
+            f"that closes it ({os.path.getsize(path)} bytes): truncated",
+        )
+    for w in said:  # the others as they were, to the filters of whoever reads
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return ds, bare and _syntax_found(ds)
 
 

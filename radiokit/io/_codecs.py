@@ -228,6 +228,25 @@ def check_complete(path, buf, header: dict, where: str = "") -> None:
         raise FormatError(path, f"{where}a {describe(header)} stream without its end marker (0xFFD9): truncated")
 
 
+def codestreams(buf, header: dict) -> int:
+    """How many codestreams ``buf`` holds one after another: its first, and each that begins (SOI,
+    SOC or a JP2 signature) right after an end marker (0xFFD9) and the zero bytes padding a
+    fragment to even length. A decoder reads the first and ignores the rest."""
+    data, count, pos = bytes(buf), 1, header.get("scan", 0)
+    while (end := data.find(b"\xff\xd9", pos)) >= 0:
+        start = end + 2
+        while start < len(data) and data[start] == 0:
+            start += 1
+        if (
+            data[start : start + 3] == JPEG_MAGIC
+            or data[start : start + 4] == J2K_MAGIC
+            or data[start:].startswith(JP2_MAGIC)
+        ):
+            count += 1
+        pos = start
+    return count
+
+
 def check_decoded(path, data: np.ndarray, header: dict, where: str = "") -> None:
     """Refuse a decode whose image is not the one the header declared (a corrupt stream that the
     decoder filled otherwise)."""
@@ -351,17 +370,29 @@ def say_lossy_dicom(path, ds, syntax) -> str | None:
 def _frame_bytes(path, ds, n: int, i: int) -> bytes:
     """Frame ``i``'s codestream: its fragments joined, found by the Basic (or Extended) Offset
     Table, else one fragment a frame, else by the JPEG end-of-image markers (pydicom's rules)."""
-    from pydicom.encaps import get_frame
+    from pydicom.encaps import get_frame, parse_basic_offsets
 
     offsets = None
     if "ExtendedOffsetTable" in ds and "ExtendedOffsetTableLengths" in ds:
         offsets = (ds.ExtendedOffsetTable, ds.ExtendedOffsetTableLengths)
     try:
-        return get_frame(ds.PixelData, i, number_of_frames=n, extended_offsets=offsets)
+        listed = len(offsets[0]) // 8 if offsets else len(parse_basic_offsets(ds.PixelData))
+        frame = get_frame(ds.PixelData, i, number_of_frames=n, extended_offsets=offsets)
     except Exception as exc:  # pydicom's ValueError, or a struct error on a cut item
         raise FormatError(
             path, f"frame {i}'s encapsulated fragments cannot be read: {' '.join(str(exc).split())}"
         ) from None
+    if listed > n:
+        # an offset table of more frames than NumberOfFrames (absent: 1) declares: get_frame
+        # reads the first n of them, and the rest would never be
+        declared = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"its offset table lists {listed} frames, more than its NumberOfFrames "
+            f"({'absent: 1' if declared is None else declared}) declares, whose header is wrong; "
+            "read as declared, the others would be lost",
+        )
+    return frame
 
 
 def _check_frame_header(path, header: dict, geometry: dict, i: int) -> None:
@@ -391,6 +422,16 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
         raise FormatError(path, f"frame {i}'s codestream header cannot be read ({exc}): corrupt") from None
     _check_frame_header(path, header, geometry, i)
     check_complete(path, buf, header, f"frame {i} is ")
+    if (count := codestreams(buf, header)) > 1:
+        # frames one fragment each under a NumberOfFrames absent or too small: pydicom joins
+        # every fragment into the one frame declared, whose decode is the first frame alone
+        declared = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"frame {i}'s fragments hold {count} codestreams, one after another: more frames than its "
+            f"NumberOfFrames ({'absent: 1' if declared is None else declared}) declares, whose header is wrong; "
+            "read as declared, all but the first would be lost",
+        )
     syntax = ds.file_meta.TransferSyntaxUID
     if header["lossless"] is False and compressed_syntaxes().get(syntax) is False and not geometry.get("mislabel_said"):
         geometry["mislabel_said"] = True  # once per open file, not once per frame
@@ -407,6 +448,14 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     check_decoded(path, data, header, f"frame {i} ")
     dtype = geometry["dtype"].newbyteorder("=")
     if dtype.kind == "i" and data.dtype.kind == "u":
-        top = 1 << (header["precision"] - 1)
-        data = (data.astype(np.int64) ^ top) - top
+        # the sign bit is BitsStored's top where the stream is wider (CharLS and OpenJPEG encode
+        # uint16 words at 16 bits): the unused bits above it are undefined (PS3.5 8.1.1), zero
+        # for some writers, and pydicom reads such words uncompressed from BitsStored too
+        bits = min(header["precision"], int(ds.get("BitsStored", 0) or 0) or header["precision"])
+        top = 1 << (bits - 1)
+        data = ((data.astype(np.int64) & ((1 << bits) - 1)) ^ top) - top
+    elif dtype.kind == "u" and data.dtype.kind == "i":
+        # a JPEG 2000 whose SIZ says signed over unsigned counts (a writer's mislabel): its bits
+        # are the counts, as pydicom reads them, not int16 values wrapped to 65000s
+        data = data.astype(np.int64) & ((1 << header["precision"]) - 1)
     return data.astype(dtype, copy=False)
