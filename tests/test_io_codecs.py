@@ -562,3 +562,55 @@ def bytes_header_of(stream) -> dict:
     from radiokit.io._codecs import bytes_header
 
     return bytes_header(stream)
+
+
+def _tile_parts(stream: bytes) -> list[tuple[int, int, int]]:
+    """(offset, tile index, length) of each tile-part (SOT, T.800 A.4.2) of a codestream whose
+    tile-parts all state their length."""
+    parts, pos = [], stream.index(b"\xff\x90")
+    while stream[pos : pos + 2] == b"\xff\x90":
+        _, tile, length = struct.unpack(">HHI", stream[pos + 2 : pos + 10])
+        parts.append((pos, tile, length))
+        pos += length
+    return parts
+
+
+@pytest.mark.parametrize("container", ["j2k", "dcm"])
+def test_a_jpeg_2000_missing_a_tile_is_refused_not_read_as_zeros(tmp_path, container):
+    """Four 64 x 64 tiles, the third's tile-part cut out, the end marker kept: OpenJPEG decodes
+    the missing tile as zeros without a word (every tile must have a tile-part, T.800 A.4.2).
+    Refused in one line before decoding; the whole stream still reads."""
+    rng = np.random.default_rng(4)
+    counts = rng.integers(100, 4000, (128, 128)).astype(np.uint16)
+    stream = imagecodecs.htj2k_encode(counts, level=0, tile=(64, 64))
+    at, tile, length = _tile_parts(stream)[2]
+    assert tile == 2
+    cut = stream[:at] + stream[at + length :]
+    if container == "j2k":
+        path = tmp_path / "t.j2k"
+        path.write_bytes(cut)
+    else:
+        path = _dicom(tmp_path / "t.dcm", counts[None], uid.HTJ2KLossless, lambda f: cut, bits=12)
+    with pytest.raises(FormatError, match=r"t\.(j2k|dcm): .*4 tiles.*3 of them.*corrupt") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    path = tmp_path / "whole.j2k"
+    path.write_bytes(stream)
+    np.testing.assert_array_equal(_quiet_read(path).data[0], counts)
+
+
+def test_a_jpeg_2000_header_declaring_tens_of_thousands_of_tiles_is_refused_before_decoding(tmp_path):
+    """A 16 x 16 stream whose SIZ is rewritten to 4000 x 4000 in 16 x 16 tiles (62500 of them, in
+    one tile-part): OpenJPEG sets up every tile declared, 0.7 GB for a file of ~130 bytes, under a
+    budget of 128 MiB that its image (96 MB with OpenJPEG's copy) fits. Refused from its header,
+    nothing decoded: by the budget, which counts the tiles, and under a larger one by the 62499
+    tiles it lacks."""
+    stream = bytearray(imagecodecs.jpeg2k_encode(np.zeros((16, 16), np.uint16), level=0, codecformat="J2K"))
+    struct.pack_into(">IIIIIIII", stream, 8, 4000, 4000, 0, 0, 16, 16, 0, 0)
+    path = tmp_path / "tiles.j2k"
+    path.write_bytes(bytes(stream))
+    with pytest.raises(FormatError, match=r"tiles\.j2k: .*4000x4000 .* over the memory budget of 128"):
+        read(path, budget="128MiB")
+    with pytest.raises(FormatError, match=r"tiles\.j2k: .*62500 tiles, 1 of them") as info:
+        read(path, budget="4GiB")
+    assert "\n" not in str(info.value)

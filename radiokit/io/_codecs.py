@@ -101,6 +101,9 @@ def _j2k_header(read, start: int, size: int) -> dict:
     out = {"codec": "jpeg2k", "process": "JPEG 2000", "lossless": None, "width": width, "height": height}
     out.update(components=be(40, 42), precision=(ssiz & 0x7F) + 1, signed=bool(ssiz & 0x80))
     out["htj2k"] = bool(be(6, 8) & 0x4000)  # Rsiz's bit 14: HTJ2K (T.814)
+    if not be(24, 28) or not be(28, 32):
+        raise ValueError("a tile size of 0 in its SIZ")
+    out["tiles"] = -(-(be(8, 12) - be(32, 36)) // be(24, 28)) * -(-(be(12, 16) - be(36, 40)) // be(28, 32))
     pos = start + 4 + be(4, 6)  # past SIZ, through the main header's marker segments to COD
     while pos + 4 <= size:
         b = read(pos, 4)
@@ -112,9 +115,29 @@ def _j2k_header(read, start: int, size: int) -> dict:
             if len(cod) == 10:
                 out["lossless"] = cod[9] == 1
         pos += 2 + int.from_bytes(b[2:4], "big")
+    out["tiles_found"] = _tiles_found(read, out.get("scan", size), size, out["tiles"])
     if out["lossless"] is not None:
         out["process"] += " (reversible 5/3)" if out["lossless"] else " (irreversible 9/7: lossy)"
     return out
+
+
+def _tiles_found(read, pos: int, size: int, tiles: int) -> int:
+    """How many of the ``tiles`` a codestream declares have a tile-part, its SOT segments walked by
+    their lengths (Psot, T.800 A.4.2) from the first. Why: OpenJPEG decodes a tile without one as
+    zeros, without a word, and sets up every tile declared (its structures, not the image, are
+    what a few bytes declaring tens of thousands of tiles cost: benchmarks/README.md)."""
+    found = set()
+    while pos + 10 <= size:
+        sot = read(pos, 10)
+        if sot[:2] != b"\xff\x90":
+            break
+        tile, length = int.from_bytes(sot[4:6], "big"), int.from_bytes(sot[6:10], "big")
+        if tile < tiles:
+            found.add(tile)
+        if length < 14:  # 0: the last tile-part, to the end; less than SOT and SOD: corrupt
+            break
+        pos += length
+    return len(found)
 
 
 def _jp2_codestream(read, size: int) -> int:
@@ -184,7 +207,8 @@ def decoded_bytes(header: dict) -> int:
     samples beside it; a multi-scan (progressive) JPEG keeps every DCT coefficient (2 bytes)."""
     samples = header["width"] * header["height"] * header["components"]
     extra = 4 if header["codec"] == "jpeg2k" else 2 if "progressive" in header["process"] else 0
-    return samples * (out_dtype(header).itemsize + extra)
+    # and OpenJPEG's structures for every tile declared, about 10 KiB each (benchmarks/README.md)
+    return samples * (out_dtype(header).itemsize + extra) + header.get("tiles", 0) * 10 * 1024
 
 
 def describe(header: dict) -> str:
@@ -226,6 +250,12 @@ def check_complete(path, buf, header: dict, where: str = "") -> None:
     grey. (Damage inside the coded data, its length kept, is not found: JPEG has no checksum.)"""
     if bytes(buf).rfind(b"\xff\xd9", header.get("scan", 0)) < 0:
         raise FormatError(path, f"{where}a {describe(header)} stream without its end marker (0xFFD9): truncated")
+    if header.get("tiles_found", 1) < header.get("tiles", 1):
+        raise FormatError(
+            path,
+            f"{where}a {describe(header)} stream of {header['tiles']} tiles, {header['tiles_found']} of them with "
+            "a tile-part (every tile needs one): truncated or corrupt",
+        )
 
 
 def codestreams(buf, header: dict) -> int:
