@@ -270,7 +270,7 @@ def codestreams(buf, header: dict) -> int:
         if (
             data[start : start + 3] == JPEG_MAGIC
             or data[start : start + 4] == J2K_MAGIC
-            or data[start:].startswith(JP2_MAGIC)
+            or data[start : start + 12] == JP2_MAGIC
         ):
             count += 1
         pos = start
