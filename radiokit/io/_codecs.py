@@ -112,12 +112,13 @@ def _j2k_header(read, start: int, size: int) -> dict:
             break
         if b[1] == 0x52:  # COD: its SPcod's last byte is the wavelet (T.800 table A.20)
             cod = read(pos + 4, 10)
-            if len(cod) == 10:
-                out["lossless"] = cod[9] == 1
+            if len(cod) == 10:  # 5/3: lossless only where no bit-plane was cut to a rate (no header says)
+                out["lossless"] = None if cod[9] == 1 else False
+                out["reversible"] = cod[9] == 1
         pos += 2 + int.from_bytes(b[2:4], "big")
     out["tiles_found"] = _tiles_found(read, out.get("scan", size), size, out["tiles"])
-    if out["lossless"] is not None:
-        out["process"] += " (reversible 5/3)" if out["lossless"] else " (irreversible 9/7: lossy)"
+    if "reversible" in out:
+        out["process"] += " (reversible 5/3)" if out["reversible"] else " (irreversible 9/7: lossy)"
     return out
 
 
