@@ -553,3 +553,29 @@ def test_an_rle_frame_that_does_not_decode_is_one_line(tmp_path):
     with pytest.raises(FormatError, match=r"rle\.dcm: frame 0 cannot be decoded") as info:
         read(path)
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("declared", [None, 1, 2])
+def test_uncompressed_pixels_of_more_frames_than_declared_are_refused_in_one_line(tmp_path, declared):
+    """Three frames' bytes of pixel data under a NumberOfFrames absent, 1 or 2 (review s54rvjpg):
+    pydicom then returned every frame where one was asked for (allow_excess_frames), so read()
+    failed in numpy's "could not broadcast" and `radiokit correct` in a numba traceback. Refused
+    in one line naming the file, as a compressed DICOM's extra frames are. A pad byte is no frame."""
+    import pydicom
+
+    frames = np.stack([_texture(seed=k) for k in range(3)]) * 1000
+    path = _dicom(tmp_path / "x.dcm", frames)
+    ds = pydicom.dcmread(path)
+    if declared is None:
+        del ds.NumberOfFrames
+    else:
+        ds.NumberOfFrames = declared
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"x\.dcm: .*3 frames.*NumberOfFrames") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    res = run_cli("info", path)
+    assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    ds.NumberOfFrames = 3
+    ds.save_as(path)
+    np.testing.assert_array_equal(read(path).data, frames.astype(np.uint16))

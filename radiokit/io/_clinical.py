@@ -368,7 +368,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
-    _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
+    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     if syntax in compressed_syntaxes():
         check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
     slope, intercept = (
@@ -406,7 +406,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     return ds, geometry, meta
 
 
-def _check_pixel_length(path, ds, syntax, declared: int) -> None:
+def _check_pixel_length(path, ds, syntax, n: int, frame: int) -> None:
     """Refuse uncompressed pixel data shorter than its header declares. Why: such a file opened and
     each frame then failed at its decode, and a file of a few hundred bytes declaring a gigabyte of
     frames had its stack allocated first. The element's length is read, not its value (deferred);
@@ -414,6 +414,7 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     declare, and its frames are judged as decoded."""
     from pydicom.uid import RLELossless
 
+    declared = n * frame
     if syntax in compressed_syntaxes():  # encapsulated: each frame's codestream is checked before decoding
         return
     if syntax == RLELossless:
@@ -430,6 +431,15 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     length = getattr(item, "length", None)
     if length is None:  # a DataElement already read (a small file): its bytes are at hand
         length = len(item.value or b"")
+    if length != 0xFFFFFFFF and length - declared >= frame:
+        # whole frames past those declared (NumberOfFrames absent or wrong): pydicom returned them
+        # all where one was asked for (allow_excess_frames), a 3-D "frame"; or they were lost
+        declared_as = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"a DICOM file with {length} bytes of pixel data, {length // frame} frames of {frame} bytes, where its "
+            f"NumberOfFrames ({'absent: 1' if declared_as is None else declared_as}) declares {n}: its header is wrong",
+        )
     if length == 0xFFFFFFFF or length >= declared:
         return
     raise FormatError(
