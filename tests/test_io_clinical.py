@@ -579,3 +579,21 @@ def test_uncompressed_pixels_of_more_frames_than_declared_are_refused_in_one_lin
     ds.NumberOfFrames = 3
     ds.save_as(path)
     np.testing.assert_array_equal(read(path).data, frames.astype(np.uint16))
+
+
+def test_rle_fragments_of_more_frames_than_declared_are_refused_in_one_line(tmp_path):
+    """Two RLE frames under a NumberOfFrames absent: pydicom returned both where one was asked
+    for, and read() failed in numpy's "could not broadcast" (review s54rvjpg). One line instead."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    frames = np.stack([_texture(seed=k) for k in range(2)]) * 1000
+    path = _dicom(tmp_path / "r.dcm", frames, syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    del ds.NumberOfFrames
+    ds.save_as(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own, of the excess frames
+        with pytest.raises(FormatError, match=r"r\.dcm: frame 0 .*\(2, 40, 50\).*NumberOfFrames") as info:
+            read(path)
+    assert "\n" not in str(info.value)

@@ -512,6 +512,13 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     else:
         stored = pixel_array(ds)
     stored = np.asarray(stored).astype(geometry["dtype"].newbyteorder("="), copy=False)
+    if stored.shape != (geometry["rows"], geometry["cols"]):
+        # pydicom returns every frame its data holds where fewer are declared (allow_excess_frames)
+        raise FormatError(
+            path,
+            f"frame {i} decoded as {stored.shape}, not one of {geometry['rows']}x{geometry['cols']}: its pixel data "
+            f"holds more frames than its NumberOfFrames ({ds.get('NumberOfFrames', 'absent: 1')}) declares",
+        )
     return rescaled(stored, geometry["slope"], geometry["intercept"])
 
 
