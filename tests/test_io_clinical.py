@@ -696,3 +696,47 @@ def test_info_prints_one_aligned_table_whatever_its_labels(tmp_path):
     for line, label in zip(items, labels, strict=True):
         assert line[2:].startswith(label), (line, label)
         assert line[2 + len(label) : 3 + width].strip() == "" and line[3 + width] != " ", (line, width)
+
+
+@pytest.mark.parametrize("declared", [None, 1, 2])
+def test_uncompressed_pixels_of_more_frames_than_declared_are_refused_in_one_line(tmp_path, declared):
+    """Three frames' bytes of pixel data under a NumberOfFrames absent, 1 or 2 (review s54rvjpg):
+    pydicom then returned every frame where one was asked for (allow_excess_frames), so read()
+    failed in numpy's "could not broadcast" and `radiokit correct` in a numba traceback. Refused
+    in one line naming the file, as a compressed DICOM's extra frames are. A pad byte is no frame."""
+    import pydicom
+
+    frames = np.stack([_texture(seed=k) for k in range(3)]) * 1000
+    path = _dicom(tmp_path / "x.dcm", frames)
+    ds = pydicom.dcmread(path)
+    if declared is None:
+        del ds.NumberOfFrames
+    else:
+        ds.NumberOfFrames = declared
+    ds.save_as(path)
+    with pytest.raises(FormatError, match=r"x\.dcm: .*3 frames.*NumberOfFrames") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    res = run_cli("info", path)
+    assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    ds.NumberOfFrames = 3
+    ds.save_as(path)
+    np.testing.assert_array_equal(read(path).data, frames.astype(np.uint16))
+
+
+def test_rle_fragments_of_more_frames_than_declared_are_refused_in_one_line(tmp_path):
+    """Two RLE frames under a NumberOfFrames absent: pydicom returned both where one was asked
+    for, and read() failed in numpy's "could not broadcast" (review s54rvjpg). One line instead."""
+    import pydicom
+    from pydicom.uid import RLELossless
+
+    frames = np.stack([_texture(seed=k) for k in range(2)]) * 1000
+    path = _dicom(tmp_path / "r.dcm", frames, syntax=RLELossless)
+    ds = pydicom.dcmread(path)
+    del ds.NumberOfFrames
+    ds.save_as(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom's own, of the excess frames
+        with pytest.raises(FormatError, match=r"r\.dcm: frame 0 .*\(2, 40, 50\).*NumberOfFrames") as info:
+            read(path)
+    assert "\n" not in str(info.value)

@@ -355,10 +355,24 @@ def _read_dataset(path):
     with open(path, "rb") as fh:
         bare = fh.read(132)[128:132] != b"DICM"
     try:
-        # values over 1 KB (the pixels) are read when asked for, not now
-        ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            # values over 1 KB (the pixels) are read when asked for, not now
+            ds = pydicom.dcmread(path, defer_size="1 KB", force=bare)
     except (InvalidDicomError, EOFError, OSError, ValueError, struct.error) as exc:
         raise FormatError(path, f"not a valid DICOM file: {exc}") from None
+    # A file cut short inside its encapsulated (compressed, RLE) pixel element: pydicom warns
+    # "End of file reached before delimiter" and drops the element, which then read as a file of
+    # no pixels at all, "a report", after a second line of pydicom's own.
+    cut = [w for w in said if "End of file reached before delimiter" in str(w.message)]
+    if cut and "PixelData" not in ds:
+        raise FormatError(
+            path,
+            "a DICOM file that ends inside its encapsulated pixel data, before the sequence delimiter "
+            f"that closes it ({os.path.getsize(path)} bytes): truncated",
+        )
+    for w in said:  # the others as they were, to the filters of whoever reads
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return ds, bare and _syntax_found(ds)
 
 
@@ -394,7 +408,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
     check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
-    _check_pixel_length(path, ds, syntax, n * rows * cols * dtype.itemsize)
+    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     if syntax in compressed_syntaxes():
         check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
     slope, intercept = (
@@ -443,7 +457,7 @@ def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
     return {}
 
 
-def _check_pixel_length(path, ds, syntax, declared: int) -> None:
+def _check_pixel_length(path, ds, syntax, n: int, frame: int) -> None:
     """Refuse uncompressed pixel data shorter than its header declares. Why: such a file opened and
     each frame then failed at its decode, and a file of a few hundred bytes declaring a gigabyte of
     frames had its stack allocated first. The element's length is read, not its value (deferred);
@@ -451,6 +465,7 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     declare, and its frames are judged as decoded."""
     from pydicom.uid import RLELossless
 
+    declared = n * frame
     if syntax in compressed_syntaxes():  # encapsulated: each frame's codestream is checked before decoding
         return
     if syntax == RLELossless:
@@ -467,6 +482,15 @@ def _check_pixel_length(path, ds, syntax, declared: int) -> None:
     length = getattr(item, "length", None)
     if length is None:  # a DataElement already read (a small file): its bytes are at hand
         length = len(item.value or b"")
+    if length != 0xFFFFFFFF and length - declared >= frame:
+        # whole frames past those declared (NumberOfFrames absent or wrong): pydicom returned them
+        # all where one was asked for (allow_excess_frames), a 3-D "frame"; or they were lost
+        declared_as = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"a DICOM file with {length} bytes of pixel data, {length // frame} frames of {frame} bytes, where its "
+            f"NumberOfFrames ({'absent: 1' if declared_as is None else declared_as}) declares {n}: its header is wrong",
+        )
     if length == 0xFFFFFFFF or length >= declared:
         return
     raise FormatError(
@@ -539,6 +563,13 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     else:
         stored = pixel_array(ds)
     stored = np.asarray(stored).astype(geometry["dtype"].newbyteorder("="), copy=False)
+    if stored.shape != (geometry["rows"], geometry["cols"]):
+        # pydicom returns every frame its data holds where fewer are declared (allow_excess_frames)
+        raise FormatError(
+            path,
+            f"frame {i} decoded as {stored.shape}, not one of {geometry['rows']}x{geometry['cols']}: its pixel data "
+            f"holds more frames than its NumberOfFrames ({ds.get('NumberOfFrames', 'absent: 1')}) declares",
+        )
     return rescaled(stored, geometry["slope"], geometry["intercept"])
 
 

@@ -101,6 +101,9 @@ def _j2k_header(read, start: int, size: int) -> dict:
     out = {"codec": "jpeg2k", "process": "JPEG 2000", "lossless": None, "width": width, "height": height}
     out.update(components=be(40, 42), precision=(ssiz & 0x7F) + 1, signed=bool(ssiz & 0x80))
     out["htj2k"] = bool(be(6, 8) & 0x4000)  # Rsiz's bit 14: HTJ2K (T.814)
+    if not be(24, 28) or not be(28, 32):
+        raise ValueError("a tile size of 0 in its SIZ")
+    out["tiles"] = -(-(be(8, 12) - be(32, 36)) // be(24, 28)) * -(-(be(12, 16) - be(36, 40)) // be(28, 32))
     pos = start + 4 + be(4, 6)  # past SIZ, through the main header's marker segments to COD
     while pos + 4 <= size:
         b = read(pos, 4)
@@ -109,12 +112,33 @@ def _j2k_header(read, start: int, size: int) -> dict:
             break
         if b[1] == 0x52:  # COD: its SPcod's last byte is the wavelet (T.800 table A.20)
             cod = read(pos + 4, 10)
-            if len(cod) == 10:
-                out["lossless"] = cod[9] == 1
+            if len(cod) == 10:  # 5/3: lossless only where no bit-plane was cut to a rate (no header says)
+                out["lossless"] = None if cod[9] == 1 else False
+                out["reversible"] = cod[9] == 1
         pos += 2 + int.from_bytes(b[2:4], "big")
-    if out["lossless"] is not None:
-        out["process"] += " (reversible 5/3)" if out["lossless"] else " (irreversible 9/7: lossy)"
+    out["tiles_found"] = _tiles_found(read, out.get("scan", size), size, out["tiles"])
+    if "reversible" in out:
+        out["process"] += " (reversible 5/3)" if out["reversible"] else " (irreversible 9/7: lossy)"
     return out
+
+
+def _tiles_found(read, pos: int, size: int, tiles: int) -> int:
+    """How many of the ``tiles`` a codestream declares have a tile-part, its SOT segments walked by
+    their lengths (Psot, T.800 A.4.2) from the first. Why: OpenJPEG decodes a tile without one as
+    zeros, without a word, and sets up every tile declared (its structures, not the image, are
+    what a few bytes declaring tens of thousands of tiles cost: benchmarks/README.md)."""
+    found = set()
+    while pos + 10 <= size:
+        sot = read(pos, 10)
+        if sot[:2] != b"\xff\x90":
+            break
+        tile, length = int.from_bytes(sot[4:6], "big"), int.from_bytes(sot[6:10], "big")
+        if tile < tiles:
+            found.add(tile)
+        if length < 14:  # 0: the last tile-part, to the end; less than SOT and SOD: corrupt
+            break
+        pos += length
+    return len(found)
 
 
 def _jp2_codestream(read, size: int) -> int:
@@ -184,7 +208,8 @@ def decoded_bytes(header: dict) -> int:
     samples beside it; a multi-scan (progressive) JPEG keeps every DCT coefficient (2 bytes)."""
     samples = header["width"] * header["height"] * header["components"]
     extra = 4 if header["codec"] == "jpeg2k" else 2 if "progressive" in header["process"] else 0
-    return samples * (out_dtype(header).itemsize + extra)
+    # and OpenJPEG's structures for every tile declared, about 10 KiB each (benchmarks/README.md)
+    return samples * (out_dtype(header).itemsize + extra) + header.get("tiles", 0) * 10 * 1024
 
 
 def describe(header: dict) -> str:
@@ -226,6 +251,31 @@ def check_complete(path, buf, header: dict, where: str = "") -> None:
     grey. (Damage inside the coded data, its length kept, is not found: JPEG has no checksum.)"""
     if bytes(buf).rfind(b"\xff\xd9", header.get("scan", 0)) < 0:
         raise FormatError(path, f"{where}a {describe(header)} stream without its end marker (0xFFD9): truncated")
+    if header.get("tiles_found", 1) < header.get("tiles", 1):
+        raise FormatError(
+            path,
+            f"{where}a {describe(header)} stream of {header['tiles']} tiles, {header['tiles_found']} of them with "
+            "a tile-part (every tile needs one): truncated or corrupt",
+        )
+
+
+def codestreams(buf, header: dict) -> int:
+    """How many codestreams ``buf`` holds one after another: its first, and each that begins (SOI,
+    SOC or a JP2 signature) right after an end marker (0xFFD9) and the zero bytes padding a
+    fragment to even length. A decoder reads the first and ignores the rest."""
+    data, count, pos = bytes(buf), 1, header.get("scan", 0)
+    while (end := data.find(b"\xff\xd9", pos)) >= 0:
+        start = end + 2
+        while start < len(data) and data[start] == 0:
+            start += 1
+        if (
+            data[start : start + 3] == JPEG_MAGIC
+            or data[start : start + 4] == J2K_MAGIC
+            or data[start : start + 12] == JP2_MAGIC
+        ):
+            count += 1
+        pos = start
+    return count
 
 
 def check_decoded(path, data: np.ndarray, header: dict, where: str = "") -> None:
@@ -351,17 +401,29 @@ def say_lossy_dicom(path, ds, syntax) -> str | None:
 def _frame_bytes(path, ds, n: int, i: int) -> bytes:
     """Frame ``i``'s codestream: its fragments joined, found by the Basic (or Extended) Offset
     Table, else one fragment a frame, else by the JPEG end-of-image markers (pydicom's rules)."""
-    from pydicom.encaps import get_frame
+    from pydicom.encaps import get_frame, parse_basic_offsets
 
     offsets = None
     if "ExtendedOffsetTable" in ds and "ExtendedOffsetTableLengths" in ds:
         offsets = (ds.ExtendedOffsetTable, ds.ExtendedOffsetTableLengths)
     try:
-        return get_frame(ds.PixelData, i, number_of_frames=n, extended_offsets=offsets)
+        listed = len(offsets[0]) // 8 if offsets else len(parse_basic_offsets(ds.PixelData))
+        frame = get_frame(ds.PixelData, i, number_of_frames=n, extended_offsets=offsets)
     except Exception as exc:  # pydicom's ValueError, or a struct error on a cut item
         raise FormatError(
             path, f"frame {i}'s encapsulated fragments cannot be read: {' '.join(str(exc).split())}"
         ) from None
+    if listed > n:
+        # an offset table of more frames than NumberOfFrames (absent: 1) declares: get_frame
+        # reads the first n of them, and the rest would never be
+        declared = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"its offset table lists {listed} frames, more than its NumberOfFrames "
+            f"({'absent: 1' if declared is None else declared}) declares, whose header is wrong; "
+            "read as declared, the others would be lost",
+        )
+    return frame
 
 
 def _check_frame_header(path, header: dict, geometry: dict, i: int) -> None:
@@ -391,6 +453,16 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
         raise FormatError(path, f"frame {i}'s codestream header cannot be read ({exc}): corrupt") from None
     _check_frame_header(path, header, geometry, i)
     check_complete(path, buf, header, f"frame {i} is ")
+    if (count := codestreams(buf, header)) > 1:
+        # frames one fragment each under a NumberOfFrames absent or too small: pydicom joins
+        # every fragment into the one frame declared, whose decode is the first frame alone
+        declared = ds.get("NumberOfFrames")
+        raise FormatError(
+            path,
+            f"frame {i}'s fragments hold {count} codestreams, one after another: more frames than its "
+            f"NumberOfFrames ({'absent: 1' if declared is None else declared}) declares, whose header is wrong; "
+            "read as declared, all but the first would be lost",
+        )
     syntax = ds.file_meta.TransferSyntaxUID
     if header["lossless"] is False and compressed_syntaxes().get(syntax) is False and not geometry.get("mislabel_said"):
         geometry["mislabel_said"] = True  # once per open file, not once per frame
@@ -407,6 +479,14 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     check_decoded(path, data, header, f"frame {i} ")
     dtype = geometry["dtype"].newbyteorder("=")
     if dtype.kind == "i" and data.dtype.kind == "u":
-        top = 1 << (header["precision"] - 1)
-        data = (data.astype(np.int64) ^ top) - top
+        # the sign bit is BitsStored's top where the stream is wider (CharLS and OpenJPEG encode
+        # uint16 words at 16 bits): the unused bits above it are undefined (PS3.5 8.1.1), zero
+        # for some writers, and pydicom reads such words uncompressed from BitsStored too
+        bits = min(header["precision"], int(ds.get("BitsStored", 0) or 0) or header["precision"])
+        top = 1 << (bits - 1)
+        data = ((data.astype(np.int64) & ((1 << bits) - 1)) ^ top) - top
+    elif dtype.kind == "u" and data.dtype.kind == "i":
+        # a JPEG 2000 whose SIZ says signed over unsigned counts (a writer's mislabel): its bits
+        # are the counts, as pydicom reads them, not int16 values wrapped to 65000s
+        data = data.astype(np.int64) & ((1 << header["precision"]) - 1)
     return data.astype(dtype, copy=False)
