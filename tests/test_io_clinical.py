@@ -820,3 +820,25 @@ def test_a_png_s_ignored_palette_chunks_read_without_libpng_s_warnings(tmp_path,
     path.write_bytes(data[:at] + extra + data[at:])
     np.testing.assert_array_equal(read(path).data[0], image)
     assert "libpng" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("dark_level, bright", [(500, True), (-1500, False)])
+def test_a_signed_panel_s_darks_over_half_its_range_are_bright(tmp_path, dark_level, bright):
+    """A signed 12-bit ADC spans -2048..2047: darks at 500 stand 2548 counts above its bottom, past
+    half its 4096 counts, and leave the flats 1547: bright, as 2548-count darks of an unsigned
+    12-bit panel are. Judged as though the range began at 0 (its half 1023.5), they were not; darks
+    at -1500 (548 above the bottom: a C7942's offset) are not."""
+    from radiokit.calibrate import Calibration, CalibrationWarning
+
+    rng = np.random.default_rng(11)
+    darks = np.rint(rng.normal(dark_level, 3, (4, 32, 32))).astype(np.int16)
+    flats = np.rint(rng.normal(1900, 15, (4, 32, 32))).astype(np.int16)
+    d = _dicom(tmp_path / "d.dcm", darks, bits_stored=12, signed=True)
+    f = _dicom(tmp_path / "f.dcm", flats, bits_stored=12, signed=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CalibrationWarning)
+        Calibration.from_frames(read(d), read(f))
+    said = [str(w.message) for w in caught if "over half the ADC's range" in str(w.message)]
+    assert bool(said) == bright, said
+    if bright:
+        assert "(-2048 to 2047)" in said[0] and f"leaving the flats {2047 - dark_level} counts" in said[0]
