@@ -739,7 +739,7 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
-        top = None if bit_depth is None else declared_range(bit_depth, signed)[1]  # the file's word
+        low, top = (0, None) if bit_depth is None else declared_range(bit_depth, signed)  # the file's word
         if layout is None:  # as the frames' files were read, where the frames say
             layout = declared_layout(
                 {
@@ -776,8 +776,6 @@ class Calibration:
             flat = robust_average(flats, clip_sigma=th.clip_sigma, callback=bar.update)
             bar.set_description("calibrate defects")
             clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
-            # a signed ADC's range starts at its bottom (-2048 of 12 bits), not 0: the half-range rule's
-            low = declared_range(bit_depth, True)[0] if signed and top is not None and th.saturation == top else 0
             cal = cls._from_averages(
                 darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, scaling, low
             )
@@ -805,6 +803,7 @@ class Calibration:
         GDAL OFFSET of 100 called 1-count darks bright; their saturation, where ``th.saturation``
         is None, is said unjudged in the provenance); ``low``: the ADC's lowest count, where the range
         starts for that rule (a signed ADC's -2**(bits - 1), :func:`declared_range`; else 0)."""
+        low = low if th.saturation == -low - 1 else 0  # a signed ADC's bottom where its top is the level
         top = None if scaled else _known_top(th.saturation, given, dark, flat)
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
