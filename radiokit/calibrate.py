@@ -753,7 +753,7 @@ class Calibration:
         # the Frames' files, recorded in the provenance: refused now where it could not be saved
         given = {"darks": darks, "flats": flats}
         inputs = _frames_inputs(given, {k: len(v) if hasattr(v, "meta") else 0 for k, v in given.items()})
-        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len(inputs))
+        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len({i["path"] for i in inputs}))
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
@@ -2011,13 +2011,14 @@ def refuse_unnameable(where: str, names: dict, n_files: int) -> None:
     """Refuse dark and flat files more than a calibration's provenance can name: ``names``, its
     items that name them (``inputs``, and the command's ``dark_files`` and ``flat_files``), whose
     JSON would pass what radiokit reads back (:data:`radiokit._json.MAX_CHARS`); a ValueError of
-    one line, ``where`` first. The one rule of the command (before it opens a file) and of
+    one line, ``where`` first, naming ``n_files``, the files (each once: a file's two datasets, or
+    one given as darks and flats, are one). The one rule of the command (before it opens a file) and of
     :meth:`Calibration.from_frames` (before it averages a frame). Why: either made the calibration
     and then refused its save (review s53rvoff; from an HDF5 dataset's 4 MB name, s54)."""
     size = len(strict_json.dumps(names))
     if size > strict_json.MAX_CHARS:
         raise ValueError(
-            f"{where}: {n_files} dark and flat files would be named in the calibration's provenance in at least "
+            f"{where}: {n_files} dark and flat file(s) would be named in the calibration's provenance in at least "
             f"{size} characters of JSON, past the {strict_json.MAX_CHARS} radiokit reads back; calibrate from fewer "
             "files (or datasets of shorter names), or from one HDF5 stack of their frames"
         )
