@@ -842,3 +842,33 @@ def test_a_signed_panel_s_darks_over_half_its_range_are_bright(tmp_path, dark_le
     assert bool(said) == bright, said
     if bright:
         assert "(-2048 to 2047)" in said[0] and f"leaving the flats {2047 - dark_level} counts" in said[0]
+
+
+@pytest.mark.parametrize("interlace", [0, 1])
+def test_the_png_handed_to_opencv_keeps_each_idat_within_a_chunk_s_most(tmp_path, monkeypatch, interlace):
+    """A PNG chunk holds at most 2**31 - 1 bytes (libpng refuses longer ones): the stored-block
+    PNG built for OpenCV held all the rows in one IDAT, past that for a 16-bit image past 32768 x
+    32768 (struct.error or libpng's "PNG unsigned integer out of range"). Such an image takes
+    GiBs, so the bound is lowered here to one stored block and its headers (a fake of the limit:
+    the fault cannot be caused within a test's memory): every IDAT within it, the values exact."""
+    import cv2
+
+    import radiokit.io._clinical as clinical
+
+    most = 65535 + 5 + 6  # one stored block, its header, and the zlib header or Adler-32
+    monkeypatch.setattr(clinical, "_CHUNK_MOST", most)
+    image = _texture((400, 300))  # 400 x 601 bytes of rows: 4 stored blocks
+    path = tmp_path / "many.png"
+    path.write_bytes(_png16_by_hand(image, interlace=interlace))
+    handed = []
+    decode = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda buf, flags: handed.append(bytes(buf)) or decode(buf, flags))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    (png,) = handed
+    pos, lengths = 8, []
+    while pos < len(png):
+        (length,) = struct.unpack_from(">I", png, pos)
+        if png[pos + 4 : pos + 8] == b"IDAT":
+            lengths.append(length)
+        pos += 12 + length
+    assert len(lengths) >= 4 and max(lengths) <= most, lengths

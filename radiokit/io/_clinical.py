@@ -223,41 +223,58 @@ def _inflated(path, need: int, idat):
     )
 
 
+#: the most data bytes of a PNG chunk (2**31 - 1: libpng refuses longer ones, "PNG unsigned
+#: integer out of range"), and so of each IDAT :func:`_stored_png` builds
+_CHUNK_MOST = 2**31 - 1
+
+
 def _stored_png(path, header: dict, interlaced: bool, head: bytes, chunks: list, idat) -> np.ndarray:
     """The PNG libpng is given: the signature and IHDR (``head``), the other pixel ``chunks``
-    (PLTE, tRNS) and one IDAT holding the image's filtered rows, inflated from the file's stream
+    (PLTE, tRNS) and IDATs holding the image's filtered rows, inflated from the file's stream
     (``idat``, :func:`_inflated`) straight into stored deflate blocks, then IEND. Why: radiokit
     must inflate the stream to know it ends where the image does, and libpng inflated it again;
     a stored block it copies (benchmarks/README.md, bench_png_read.py: a quarter of the time).
-    The buffer is the rows and a few bytes a block: no other copy of them is held."""
+    The buffer is the rows and a few bytes a block: no other copy of them is held. Whole blocks
+    an IDAT, as many as :data:`_CHUNK_MOST` holds: one IDAT of a 16-bit image past 32768 x 32768
+    (2 GiB of rows) was past it."""
     layout = _png_rows(header, interlaced)
     need = sum(rows * length for _, rows, length in layout)
+    stride = 5 + _STORED_BLOCK  # a block's header and its bytes
     blocks = max(1, -(-need // _STORED_BLOCK))
+    per = (_CHUNK_MOST - 6) // stride  # whole blocks an IDAT (and the zlib header or Adler-32)
+    n_idat = -(-blocks // per)
     stream = 2 + 5 * blocks + need + 4  # zlib header, each block's header, the rows, Adler-32
     pre = b"".join([head, *chunks])
-    out = bytearray(len(pre) + 8 + stream + 4 + 12)
+    out = bytearray(len(pre) + stream + 12 * n_idat + 12)
     out[: len(pre)] = pre
     at = len(pre)
-    struct.pack_into(">I4s2s", out, at, stream, b"IDAT", b"\x78\x01")  # deflate, 32 KiB window (0x7801 % 31 == 0)
-    first = at + 10  # the first block's header
+
+    def block_at(k):  # where block k's header lies: past k blocks, the zlib header, k // per IDATs' 12 bytes
+        return at + 8 + 12 * (k // per) + 2 + k * stride
+
     for k in range(blocks):
         n = min(_STORED_BLOCK, need - k * _STORED_BLOCK)
-        struct.pack_into("<BHH", out, first + k * (5 + _STORED_BLOCK), k == blocks - 1, n, n ^ 0xFFFF)  # BTYPE 00
+        struct.pack_into("<BHH", out, block_at(k), k == blocks - 1, n, n ^ 0xFFFF)  # BTYPE 00
+    struct.pack_into("2s", out, at + 8, b"\x78\x01")  # deflate, 32 KiB window (0x7801 % 31 == 0)
     got, adler = 0, 1
     for data in _inflated(path, need, idat):
         _check_filters(path, layout, got, data)
         adler = zlib.adler32(data, adler)
         view = memoryview(data)
-        while view:  # into its block(s): row byte j lies past j // block + 1 block headers
+        while view:  # into its block(s)
             k, j = divmod(got, _STORED_BLOCK)
             n = min(len(view), _STORED_BLOCK - j)
-            pos = first + k * (5 + _STORED_BLOCK) + 5 + j
+            pos = block_at(k) + 5 + j
             out[pos : pos + n] = view[:n]
             view, got = view[n:], got + n
         del data, view  # (let go before the next piece is inflated: one piece held at a time, png_read_bytes)
-    end = first + 5 * blocks + need
+    end = block_at(blocks - 1) + 5 + need - (blocks - 1) * _STORED_BLOCK  # past the last block's bytes
     struct.pack_into(">I", out, end, adler)
-    struct.pack_into(">I", out, end + 4, zlib.crc32(memoryview(out)[at + 4 : end + 4]))
+    for c in range(n_idat):  # each IDAT's length, kind and CRC around its blocks
+        start = at if c == 0 else block_at(c * per) - 8
+        stop = end + 4 if c == n_idat - 1 else block_at((c + 1) * per) - 12  # (its CRC, the next one's 8 bytes)
+        struct.pack_into(">I4s", out, start, stop - start - 8, b"IDAT")
+        struct.pack_into(">I", out, stop, zlib.crc32(memoryview(out)[start + 4 : stop]))
     struct.pack_into(">I4sI", out, end + 8, 0, b"IEND", zlib.crc32(b"IEND"))
     return np.frombuffer(out, np.uint8)
 
