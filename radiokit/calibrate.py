@@ -739,7 +739,7 @@ class Calibration:
                     for what, f in (("darks", darks), ("flats", flats))
                 }
             )
-        top = None if bit_depth is None else declared_range(bit_depth, signed)[1]  # the file's word
+        low, top = (0, None) if bit_depth is None else declared_range(bit_depth, signed)  # the file's word
         if layout is None:  # as the frames' files were read, where the frames say
             layout = declared_layout(
                 {
@@ -753,7 +753,7 @@ class Calibration:
         # the Frames' files, recorded in the provenance: refused now where it could not be saved
         given = {"darks": darks, "flats": flats}
         inputs = _frames_inputs(given, {k: len(v) if hasattr(v, "meta") else 0 for k, v in given.items()})
-        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len(inputs))
+        refuse_unnameable(_named_frames(darks, flats), {"inputs": inputs}, len({i["path"] for i in inputs}))
         darks, flats = _check_stacks(darks, flats)
         _check_levels(darks, flats, th.eps)
         given = th.saturation is not None
@@ -777,7 +777,7 @@ class Calibration:
             bar.set_description("calibrate defects")
             clipped = clipped_samples(flats, th.saturation, clip_sigma=th.clip_sigma)
             cal = cls._from_averages(
-                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, scaling
+                darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped, scaling, low
             )
             bar.update(rows)
         cal.provenance.update(layout or {})
@@ -793,7 +793,7 @@ class Calibration:
 
     @classmethod
     def _from_averages(
-        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None, scaled=False
+        cls, darks, flats, dark, dark_std, flat, th, dark_times, flat_times, given, clipped=None, scaled=False, low=0
     ) -> Calibration:
         """The defect map and the calibration of the averaged dark and flat (:meth:`from_frames`;
         ``given``: ``th.saturation`` was the caller's, not guessed from the frames; ``clipped``:
@@ -801,7 +801,9 @@ class Calibration:
         the frames' scaling (:func:`value_scaling`), if any: scaled values, whose range does not
         start at 0 as the half-range rule of :func:`_bright_darks` assumes, so it is not applied: a
         GDAL OFFSET of 100 called 1-count darks bright; their saturation, where ``th.saturation``
-        is None, is said unjudged in the provenance)."""
+        is None, is said unjudged in the provenance); ``low``: the ADC's lowest count, where the range
+        starts for that rule (a signed ADC's -2**(bits - 1), :func:`declared_range`; else 0)."""
+        low = low if th.saturation == -low - 1 else 0  # a signed ADC's bottom where its top is the level
         top = None if scaled else _known_top(th.saturation, given, dark, flat)
         if darks.shape[0] < 4:
             # No noisy-pixel test: with 3 darks the std left after the most deviant sample is
@@ -821,8 +823,8 @@ class Calibration:
             )
             _check_defect_share(mask, n_flat_saturated, th.saturation, response, th.dead_below)
         except ValueError as exc:
-            raise _blame(str(exc), dark, flat, _dark_noise(darks), th, top) from None
-        bright = _bright_darks(float(np.median(dark)), top)
+            raise _blame(str(exc), dark, flat, _dark_noise(darks), th, top, low) from None
+        bright = _bright_darks(float(np.median(dark)), top, low)
         if bright:
             warnings.warn(bright, CalibrationWarning, stacklevel=3)
         # after the refusals: a refused map needs no more words; the saturation's lines are said
@@ -2009,13 +2011,14 @@ def refuse_unnameable(where: str, names: dict, n_files: int) -> None:
     """Refuse dark and flat files more than a calibration's provenance can name: ``names``, its
     items that name them (``inputs``, and the command's ``dark_files`` and ``flat_files``), whose
     JSON would pass what radiokit reads back (:data:`radiokit._json.MAX_CHARS`); a ValueError of
-    one line, ``where`` first. The one rule of the command (before it opens a file) and of
+    one line, ``where`` first, naming ``n_files``, the files (each once: a file's two datasets, or
+    one given as darks and flats, are one). The one rule of the command (before it opens a file) and of
     :meth:`Calibration.from_frames` (before it averages a frame). Why: either made the calibration
     and then refused its save (review s53rvoff; from an HDF5 dataset's 4 MB name, s54)."""
     size = len(strict_json.dumps(names))
     if size > strict_json.MAX_CHARS:
         raise ValueError(
-            f"{where}: {n_files} dark and flat files would be named in the calibration's provenance in at least "
+            f"{where}: {n_files} dark and flat file(s) would be named in the calibration's provenance in at least "
             f"{size} characters of JSON, past the {strict_json.MAX_CHARS} radiokit reads back; calibrate from fewer "
             "files (or datasets of shorter names), or from one HDF5 stack of their frames"
         )
@@ -2131,18 +2134,21 @@ def declared_scaling(scalings: dict) -> dict:
     return next((s for s in scalings.values() if s), {})
 
 
-def _bright_darks(dark_median: float, top: int | None) -> str | None:
-    """What to say of darks whose median is over half the ADC's range (None: they are not).
+def _bright_darks(dark_median: float, top: int | None, low: int = 0) -> str | None:
+    """What to say of darks whose median is over half the ADC's range, ``low`` to ``top`` (None:
+    they are not). A signed ADC's range starts at its bottom (``low``, -2048 of 12 bits): judged
+    from 0, darks 2548 counts above it (500) were not bright.
 
     Why half: the C7942's ~2.2 Me- full well over its ~1100 e- noise (dynamic range ~2000, C7942.md)
     fills its 12-bit range at about 2 counts rms, so the panel's own offset -- a hundred-odd
     counts, +200 after 1 MR of dose -- is a small part of the range. Darks over half of it carry
     light (a leak, the beam on), or the read-out's offset or bit depth is set wrong: either way
     they leave the flats less than half the panel's range."""
-    if top is None or dark_median <= top / 2:
+    if top is None or dark_median <= (low + top) / 2:
         return None
+    span = f"{low}-{top}" if low >= 0 else f"{low} to {top}"
     return (
-        f"the darks read {dark_median:.0f} counts (median), over half the ADC's range (0-{top}), leaving the "
+        f"the darks read {dark_median:.0f} counts (median), over half the ADC's range ({span}), leaving the "
         f"flats {max(top - dark_median, 0):.0f} counts: a C7942's offset is a few hundred; light reached the "
         "panel for the darks (a leak, the beam on) or the read-out's offset or bit depth is set wrong"
     )
@@ -2160,7 +2166,9 @@ def _known_top(top: int | None, given: bool, *averages) -> int | None:
     return None
 
 
-def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds, top: int | None) -> CalibrationRefused:
+def _blame(
+    refusal: str, dark, flat, noise: float | None, th: Thresholds, top: int | None, low: int = 0
+) -> CalibrationRefused:
     """The refusal ``refusal`` of these averaged darks and flats, naming the frames at fault.
 
     A flat reads the panel's dark plus the beam's signal, never less. So flats darker than the
@@ -2177,7 +2185,7 @@ def _blame(refusal: str, dark, flat, noise: float | None, th: Thresholds, top: i
             "drifted since: shield the panel, then take new darks",
             ("darks",),
         )
-    bright = _bright_darks(d, top)
+    bright = _bright_darks(d, top, low)
     if bright:
         return CalibrationRefused(
             f"{bright}; hence {refusal.split(':')[0]} (median {f:.0f}): fix that, then take new darks and flats",

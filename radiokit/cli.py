@@ -770,7 +770,7 @@ def _refuse_unnameable(output, darks, flats) -> None:
         "flat_files": [str(p) for p in flats],
         "inputs": [CalibrationInput(p, str(Path(p).resolve()), "", size_bytes=0).record() for p in files],
     }
-    refuse_unnameable(f"{shown(output)}: not written", least, len(darks) + len(flats))
+    refuse_unnameable(f"{shown(output)}: not written", least, len(files))
 
 
 def _calibration_from_files(args, th):

@@ -740,3 +740,179 @@ def test_rle_fragments_of_more_frames_than_declared_are_refused_in_one_line(tmp_
         with pytest.raises(FormatError, match=r"r\.dcm: frame 0 .*\(2, 40, 50\).*NumberOfFrames") as info:
             read(path)
     assert "\n" not in str(info.value)
+
+
+# -- review s54rvoff --------------------------------------------------------------------------
+def _png_by_hand(image, depth, *, interlace=0, ihdr=None, filter_byte=0):
+    """A greyscale PNG of ``depth``-bit samples (1, 2, 4 packed to whole bytes a row, 8, 16),
+    written chunk by chunk with each row's filter ``filter_byte`` (0, None; 5 is no PNG filter),
+    Adam7 where asked; ``ihdr`` replaces the header's 13 bytes."""
+    h, w = image.shape
+    passes = [(0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1)]
+    subs = [image[y::dy, x::dx] for y, x, dy, dx in passes] if interlace else [image]
+
+    def packed(row):
+        if depth >= 8:
+            return row.astype(">u2" if depth == 16 else np.uint8).tobytes()
+        bits = np.unpackbits(row.astype(np.uint8)[:, None], axis=1)[:, 8 - depth :]  # each sample's low bits
+        return np.packbits(bits.ravel()).tobytes()
+
+    raw = b"".join(bytes([filter_byte]) + packed(row) for sub in subs if sub.size for row in sub)
+    ihdr = ihdr or struct.pack(">IIBBBBB", w, h, depth, 0, 0, 0, interlace)
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("interlace", [0, 1])
+@pytest.mark.parametrize("depth", [1, 2, 4])
+def test_a_1_2_or_4_bit_greyscale_png_reads_its_stored_samples(tmp_path, depth, interlace):
+    """A sample of ``depth`` bits is a count of 0..2**depth - 1, as the file stores it (and its
+    reader declares: ``bit_depth``). libpng's 1/2/4-to-8 expansion (OpenCV asks for it) replicates
+    the bits, 1 -> 255 at 1 bit, 3 -> 255 at 2: read so, every value was scaled by 255 / (2**depth
+    - 1) and warned of as "exceeding the 1-bit range"."""
+    rng = np.random.default_rng(depth)
+    image = rng.integers(0, 1 << depth, size=(19, 23), dtype=np.uint8)
+    image[0, : 1 << depth] = np.arange(1 << depth)  # every level present
+    path = tmp_path / f"g{depth}.png"
+    path.write_bytes(_png_by_hand(image, depth, interlace=interlace))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no "values exceed the range" of the file's own samples)
+        got = read(path)
+    np.testing.assert_array_equal(got.data[0], image)
+    assert got.meta["bit_depth"] == depth
+
+
+@pytest.mark.parametrize(
+    "what, ihdr, said",
+    [
+        pytest.param(*case, id=case[0])
+        for case in [
+            ("interlace method 2", struct.pack(">IIBBBBB", 23, 19, 16, 0, 0, 0, 2), "interlace method 2"),
+            ("compression method 1", struct.pack(">IIBBBBB", 23, 19, 16, 0, 1, 0, 0), "compression method 1"),
+            ("filter method 1", struct.pack(">IIBBBBB", 23, 19, 16, 0, 0, 1, 0), "filter method 1"),
+            ("RGB of 4 bits", struct.pack(">IIBBBBB", 23, 19, 4, 2, 0, 0, 0), "colour type 2, bit depth 4"),
+            ("grey-alpha of 2 bits", struct.pack(">IIBBBBB", 23, 19, 2, 4, 0, 0, 0), "colour type 4, bit depth 2"),
+            ("a 14-byte IHDR", struct.pack(">IIBBBBB", 23, 19, 16, 0, 0, 0, 0) + b"\0", "IHDR of 14 bytes"),
+            ("1 000 001 columns", struct.pack(">IIBBBBB", 1_000_001, 1, 8, 0, 0, 0, 0), "1000001 x 1"),
+            ("a row filter of 5", None, "filter type 5"),
+        ]
+    ],
+)
+def test_a_png_libpng_would_refuse_is_one_line_without_libpng_s_own(tmp_path, capfd, what, ihdr, said):
+    """An IHDR libpng finds invalid (a method PNG does not define, a colour type and bit depth it
+    does not pair, more than libpng's 1 000 000 columns or rows) and a row whose filter type is
+    none of PNG's five: libpng printed "libpng warning: ..." and "libpng error: ..." on the
+    process's stderr, and radiokit then a line that blamed truncation. One line, the fault named."""
+    image = _texture((19, 23))
+    path = tmp_path / "bad.png"
+    path.write_bytes(_png_by_hand(image, 16, ihdr=ihdr, filter_byte=5 if ihdr is None else 0))
+    with pytest.raises(FormatError, match=rf"bad\.png: .*{re.escape(said)}") as info:
+        read(path)
+    assert "\n" not in str(info.value), what
+    assert "libpng" not in capfd.readouterr().err, what
+
+
+@pytest.mark.parametrize("shape, depth", [((1000, 600), 16), ((200_000, 1), 8)])
+def test_a_png_s_memory_budget_counts_what_its_read_holds_at_once(tmp_path, shape, depth):
+    """A PNG's read holds the stored-block PNG built of its inflated rows (a filter byte and the
+    packed samples of each row) while OpenCV decodes the pixels beside it: about twice the pixels
+    of a 16-bit image, three times those of an 8-bit one a pixel wide (a filter byte a sample). A
+    budget that counted the decoded pixels alone let a PNG just under it take twice as much. Now
+    a budget of the pixels and a byte is refused before anything is inflated, and what the check
+    counts covers the decode's traced peak (numpy's and Python's allocations; 64 KiB more for
+    zlib's window and Python's objects), and is what a read then needs."""
+    import tracemalloc
+
+    from radiokit.io._clinical import decode_png, png_header, png_read_bytes
+
+    image = (_texture(shape) >> (16 - depth)).astype(np.uint16 if depth == 16 else np.uint8)
+    path = tmp_path / "tight.png"
+    path.write_bytes(_png_by_hand(image, depth))
+    with pytest.raises(FormatError, match=r"tight\.png: .*memory budget"):
+        read(path, budget=image.nbytes + 1)
+    header = png_header(path)
+    counted = png_read_bytes(header)
+    rows = shape[0] * (1 + shape[1] * depth // 8)  # what the stream inflates to, held with the pixels
+    assert counted >= image.nbytes + rows
+    tracemalloc.start()
+    try:
+        pixels = decode_png(path, header)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(pixels, image)
+    assert peak <= counted + 2**16, (peak, counted)
+    np.testing.assert_array_equal(read(path, budget=counted).data[0], image)
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        pytest.param(_chunk(b"PLTE", bytes(6)), id="PLTE in greyscale"),
+        pytest.param(_chunk(b"tRNS", bytes(4)), id="tRNS of 4 bytes"),
+        pytest.param(_chunk(b"tRNS", b"\xff\xfe") + _chunk(b"tRNS", b"\xff\xfd"), id="two tRNS"),
+    ],
+)
+def test_a_png_s_ignored_palette_chunks_read_without_libpng_s_warnings(tmp_path, capfd, extra):
+    """A PLTE in a greyscale image, a tRNS of the wrong length, a second tRNS: libpng ignores
+    them, saying so on the process's stderr ("libpng warning: tRNS: invalid"). Read as libpng
+    reads them, and not heard."""
+    image = _texture((19, 23))
+    image[image >= 0xFFFD] = 0  # (no sample the tRNS names: opaque everywhere)
+    data = _png_by_hand(image, 16)
+    at = data.index(b"IDAT") - 4
+    path = tmp_path / "extra.png"
+    path.write_bytes(data[:at] + extra + data[at:])
+    np.testing.assert_array_equal(read(path).data[0], image)
+    assert "libpng" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("dark_level, bright", [(500, True), (-1500, False)])
+def test_a_signed_panel_s_darks_over_half_its_range_are_bright(tmp_path, dark_level, bright):
+    """A signed 12-bit ADC spans -2048..2047: darks at 500 stand 2548 counts above its bottom, past
+    half its 4096 counts, and leave the flats 1547: bright, as 2548-count darks of an unsigned
+    12-bit panel are. Judged as though the range began at 0 (its half 1023.5), they were not; darks
+    at -1500 (548 above the bottom: a C7942's offset) are not."""
+    from radiokit.calibrate import Calibration, CalibrationWarning
+
+    rng = np.random.default_rng(11)
+    darks = np.rint(rng.normal(dark_level, 3, (4, 32, 32))).astype(np.int16)
+    flats = np.rint(rng.normal(1900, 15, (4, 32, 32))).astype(np.int16)
+    d = _dicom(tmp_path / "d.dcm", darks, bits_stored=12, signed=True)
+    f = _dicom(tmp_path / "f.dcm", flats, bits_stored=12, signed=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CalibrationWarning)
+        Calibration.from_frames(read(d), read(f))
+    said = [str(w.message) for w in caught if "over half the ADC's range" in str(w.message)]
+    assert bool(said) == bright, said
+    if bright:
+        assert "(-2048 to 2047)" in said[0] and f"leaving the flats {2047 - dark_level} counts" in said[0]
+
+
+@pytest.mark.parametrize("interlace", [0, 1])
+def test_the_png_handed_to_opencv_keeps_each_idat_within_a_chunk_s_most(tmp_path, monkeypatch, interlace):
+    """A PNG chunk holds at most 2**31 - 1 bytes (libpng refuses longer ones): the stored-block
+    PNG built for OpenCV held all the rows in one IDAT, past that for a 16-bit image past 32768 x
+    32768 (struct.error or libpng's "PNG unsigned integer out of range"). Such an image takes
+    GiBs, so the bound is lowered here to one stored block and its headers (a fake of the limit:
+    the fault cannot be caused within a test's memory): every IDAT within it, the values exact."""
+    import cv2
+
+    import radiokit.io._clinical as clinical
+
+    most = 65535 + 5 + 6  # one stored block, its header, and the zlib header or Adler-32
+    monkeypatch.setattr(clinical, "_CHUNK_MOST", most)
+    image = _texture((400, 300))  # 400 x 601 bytes of rows: 4 stored blocks
+    path = tmp_path / "many.png"
+    path.write_bytes(_png16_by_hand(image, interlace=interlace))
+    handed = []
+    decode = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda buf, flags: handed.append(bytes(buf)) or decode(buf, flags))
+    np.testing.assert_array_equal(read(path).data[0], image)
+    (png,) = handed
+    pos, lengths = 8, []
+    while pos < len(png):
+        (length,) = struct.unpack_from(">I", png, pos)
+        if png[pos + 4 : pos + 8] == b"IDAT":
+            lengths.append(length)
+        pos += 12 + length
+    assert len(lengths) >= 4 and max(lengths) <= most, lengths

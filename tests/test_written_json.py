@@ -223,7 +223,7 @@ def test_calibrate_from_files_whose_names_alone_pass_the_bound_is_refused_before
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     (line,) = res.stderr.splitlines()
     assert line.startswith(f"radiokit calibrate: {out}: not written: "), line
-    assert f"{n} dark and flat files" in line and str(strict_json.MAX_CHARS) in line, line
+    assert f"{n} dark and flat file(s)" in line and str(strict_json.MAX_CHARS) in line, line
     assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["00" + "d" * 246]
 
 
@@ -259,6 +259,8 @@ def test_from_frames_refuses_frames_its_provenance_could_not_name_before_averagi
     message = str(info.value)
     assert "\n" not in message and str(path) in message and str(strict_json.MAX_CHARS) in message, message[:300]
     assert "provenance" in message and len(message) < 2000, message[:300]
+    # one file (two of its datasets): it was said "2 dark and flat files" (review s54rvoff)
+    assert ": 1 dark and flat file(s) would be named" in message, message[-400:]
 
 
 def test_every_frame_s_source_index_names_its_file_where_the_sources_are_summarised(tmp_path, monkeypatch):

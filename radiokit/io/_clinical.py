@@ -54,10 +54,10 @@ def png_header(path) -> dict:
             raise FormatError(path, f"no PNG signature ({PNG_MAGIC!r}): not a PNG file")
         if len(head) < 33 or head[12:16] != b"IHDR":
             raise FormatError(path, "a PNG without its IHDR header first: truncated or corrupt")
-        width, height, depth, colour = struct.unpack(">IIBB", head[16:26])
-        if colour not in _PNG_COLOURS or depth not in (1, 2, 4, 8, 16) or not width or not height:
-            raise FormatError(path, f"a PNG whose IHDR is invalid (colour type {colour}, bit depth {depth})")
+        _check_ihdr(path, head)
+        width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", head[16:29])
         out = {"width": width, "height": height, "depth": depth, "colour": colour, "trns": False, "sbit": None}
+        out |= {"interlaced": bool(interlace), "file_bytes": size}
         pos = 33
         while pos + 8 <= size:  # the chunks up to the first IDAT: bounded by the file's size
             fh.seek(pos)
@@ -74,6 +74,35 @@ def png_header(path) -> dict:
     return out
 
 
+#: each colour type's bit depths (PNG 1.2, 11.2.2)
+_PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+#: libpng's default most columns and rows (PNG_USER_WIDTH_MAX, PNG_USER_HEIGHT_MAX), which OpenCV keeps
+_LIBPNG_MOST = 1_000_000
+
+
+def _check_ihdr(path, head: bytes) -> None:
+    """Refuse in one line an IHDR libpng refuses (its 13 bytes' methods, a colour type and bit
+    depth PNG does not pair, past libpng's 1 000 000 columns or rows). Why: libpng printed
+    "libpng warning: ..." and "libpng error: Invalid IHDR data" on the process's stderr, and
+    radiokit then blamed truncation."""
+    (length,) = struct.unpack(">I", head[8:12])
+    width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", head[16:29])
+    if length != 13:
+        fault = f"an IHDR of {length} bytes, not 13"
+    elif colour not in _PNG_DEPTHS or depth not in _PNG_DEPTHS[colour]:
+        fault = f"colour type {colour}, bit depth {depth}: no PNG image"
+    elif (compression, filtering) != (0, 0) or interlace not in (0, 1):
+        fault = f"compression method {compression}, filter method {filtering}, interlace method {interlace}"
+        fault += ": PNG defines 0, 0 and 0 or 1"
+    elif not width or not height:
+        fault = f"an image of {width} x {height} pixels"
+    elif max(width, height) > _LIBPNG_MOST:
+        fault = f"{width} x {height} pixels, past the {_LIBPNG_MOST} columns or rows OpenCV's libpng reads"
+    else:
+        return
+    raise FormatError(path, f"a PNG whose IHDR is invalid ({fault})")
+
+
 def png_decoded_bytes(header: dict) -> int:
     """What OpenCV's decode allocates: one byte a sample up to 8 bits, two for 16; greyscale with
     no tRNS one channel, anything else up to four (BGRA)."""
@@ -81,12 +110,25 @@ def png_decoded_bytes(header: dict) -> int:
     return header["width"] * header["height"] * channels * (2 if header["depth"] == 16 else 1)
 
 
+def png_read_bytes(header: dict) -> int:
+    """What :func:`decode_png` holds at once: the PNG it builds of the inflated rows
+    (:func:`_stored_png`: the rows and each stored block's header), with the file's bytes and an
+    inflated piece while it builds it, then with the pixels OpenCV decodes (:func:`png_decoded_bytes`).
+    Why not the pixels alone: the built PNG is about their size (16-bit), twice it a pixel wide
+    (a filter byte a sample), and a PNG just under the budget took twice the budget."""
+    need = png_pixel_bytes(header, header.get("interlaced", False))
+    built = need + 5 * -(-need // _STORED_BLOCK) + 64  # (the chunks' headers, the zlib header and Adler-32)
+    # (a piece zlib gives is built in blocks then joined: twice its size at most)
+    building = header.get("file_bytes", 0) + 2 * min(need, _INFLATE_PIECE) + _FED
+    return built + max(building, png_decoded_bytes(header))
+
+
 def check_png(path, header: dict, budget) -> None:
     """Refuse, before decoding, a PNG whose declared pixels pass the memory budget, and a palette
     image (its values are indices into a colour table, not intensities)."""
     w, h, depth, colour = (header[k] for k in ("width", "height", "depth", "colour"))
     kind = _PNG_COLOURS[colour]
-    check_budget(path, png_decoded_bytes(header), f"its PNG header's {w}x{h} {depth}-bit {kind} image", budget)
+    check_budget(path, png_read_bytes(header), f"its PNG header's {w}x{h} {depth}-bit {kind} image", budget)
     if header.get("frames", 1) > 1:  # OpenCV decodes the default image alone and says nothing of the rest
         raise FormatError(
             path,
@@ -104,20 +146,49 @@ def check_png(path, header: dict, budget) -> None:
 #: Adam7's passes: (first row, first column, row step, column step)
 _ADAM7 = ((0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1))
 _PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+#: a stored deflate block's most bytes (its LEN is 16 bits)
+_STORED_BLOCK = 0xFFFF
+#: the most bytes :func:`_inflated` gives at a time, and feeds the decompressor at a time
+_INFLATE_PIECE, _FED = 1 << 20, 1 << 16
 
 
-def png_pixel_bytes(header: dict, interlaced: bool) -> int:
-    """The bytes IDAT's zlib stream inflates to: each row (of each Adam7 pass) a filter byte
-    and its samples, packed to whole bytes."""
+def _png_rows(header: dict, interlaced: bool) -> list[tuple[int, int, int]]:
+    """Where IDAT's inflated stream holds its rows: (first byte, rows, bytes a row) of each
+    Adam7 pass (one pass where not interlaced), each row a filter byte and its samples packed
+    to whole bytes."""
     w, h = header["width"], header["height"]
     bits = _PNG_SAMPLES[header["colour"]] * header["depth"]
     passes = _ADAM7 if interlaced else ((0, 0, 1, 1),)
-    total = 0
+    out, start = [], 0
     for y, x, dy, dx in passes:
         rows, cols = -(-(h - y) // dy), -(-(w - x) // dx)
         if rows > 0 and cols > 0:
-            total += rows * (1 + -(-cols * bits // 8))
-    return total
+            out.append((start, rows, 1 + -(-cols * bits // 8)))
+            start += rows * out[-1][2]
+    return out
+
+
+def png_pixel_bytes(header: dict, interlaced: bool) -> int:
+    """The bytes IDAT's zlib stream inflates to (:func:`_png_rows`)."""
+    return sum(rows * length for _, rows, length in _png_rows(header, interlaced))
+
+
+def _check_filters(path, layout, at: int, data) -> None:
+    """Refuse in one line a row, among the inflated bytes ``data`` from byte ``at`` of the stream,
+    whose filter type is none of PNG's five (0-4). Why: libpng printed "libpng error: bad
+    adaptive filter value" on the process's stderr. A strided view of each pass's filter bytes:
+    no copy."""
+    arr = np.frombuffer(data, np.uint8)
+    for start, rows, length in layout:
+        lo, hi = max(start, at), min(start + rows * length, at + len(arr))
+        first = start + -(-(lo - start) // length) * length  # the first row starting at or past lo
+        if first < hi:
+            found = arr[first - at : hi - at : length]
+            if found.max() > 4:
+                bad = int(np.argmax(found > 4))
+                raise FormatError(
+                    path, f"a PNG whose pixel data holds a row of filter type {found[bad]}, none of PNG's 0-4: corrupt"
+                )
 
 
 def _inflated(path, need: int, idat):
@@ -129,15 +200,20 @@ def _inflated(path, need: int, idat):
     the one line."""
     got = 0
     inflate = zlib.decompressobj()
+    # fed a slice of a chunk at a time: a piece's unconsumed_tail is a copy of what is left of it
+    # (a one-IDAT file's whole stream, beside the file and the built PNG: png_read_bytes)
+    pieces = (chunk[k : k + _FED] for chunk in idat for k in range(0, len(chunk), _FED))
     try:
-        for piece in idat:
-            data = inflate.decompress(piece, min(need - got, 1 << 20))
-            while data:
+        for piece in pieces:
+            tail = piece
+            while tail and got < need:
+                data = inflate.decompress(tail, min(need - got, _INFLATE_PIECE))
+                tail = inflate.unconsumed_tail
+                if not data:
+                    break
                 got += len(data)
                 yield data
-                if got >= need or not inflate.unconsumed_tail:
-                    break
-                data = inflate.decompress(inflate.unconsumed_tail, min(need - got, 1 << 20))
+                del data  # (one piece held at a time, beside the one zlib builds: png_read_bytes)
             if got >= need:
                 return
     except zlib.error as exc:
@@ -147,42 +223,58 @@ def _inflated(path, need: int, idat):
     )
 
 
-#: a stored deflate block's most bytes (its LEN is 16 bits)
-_STORED_BLOCK = 0xFFFF
+#: the most data bytes of a PNG chunk (2**31 - 1: libpng refuses longer ones, "PNG unsigned
+#: integer out of range"), and so of each IDAT :func:`_stored_png` builds
+_CHUNK_MOST = 2**31 - 1
 
 
 def _stored_png(path, header: dict, interlaced: bool, head: bytes, chunks: list, idat) -> np.ndarray:
     """The PNG libpng is given: the signature and IHDR (``head``), the other pixel ``chunks``
-    (PLTE, tRNS) and one IDAT holding the image's filtered rows, inflated from the file's stream
+    (PLTE, tRNS) and IDATs holding the image's filtered rows, inflated from the file's stream
     (``idat``, :func:`_inflated`) straight into stored deflate blocks, then IEND. Why: radiokit
     must inflate the stream to know it ends where the image does, and libpng inflated it again;
     a stored block it copies (benchmarks/README.md, bench_png_read.py: a quarter of the time).
-    The buffer is the rows and a few bytes a block: no other copy of them is held."""
-    need = png_pixel_bytes(header, interlaced)
+    The buffer is the rows and a few bytes a block: no other copy of them is held. Whole blocks
+    an IDAT, as many as :data:`_CHUNK_MOST` holds: one IDAT of a 16-bit image past 32768 x 32768
+    (2 GiB of rows) was past it."""
+    layout = _png_rows(header, interlaced)
+    need = sum(rows * length for _, rows, length in layout)
+    stride = 5 + _STORED_BLOCK  # a block's header and its bytes
     blocks = max(1, -(-need // _STORED_BLOCK))
+    per = (_CHUNK_MOST - 6) // stride  # whole blocks an IDAT (and the zlib header or Adler-32)
+    n_idat = -(-blocks // per)
     stream = 2 + 5 * blocks + need + 4  # zlib header, each block's header, the rows, Adler-32
     pre = b"".join([head, *chunks])
-    out = bytearray(len(pre) + 8 + stream + 4 + 12)
+    out = bytearray(len(pre) + stream + 12 * n_idat + 12)
     out[: len(pre)] = pre
     at = len(pre)
-    struct.pack_into(">I4s2s", out, at, stream, b"IDAT", b"\x78\x01")  # deflate, 32 KiB window (0x7801 % 31 == 0)
-    first = at + 10  # the first block's header
+
+    def block_at(k):  # where block k's header lies: past k blocks, the zlib header, k // per IDATs' 12 bytes
+        return at + 8 + 12 * (k // per) + 2 + k * stride
+
     for k in range(blocks):
         n = min(_STORED_BLOCK, need - k * _STORED_BLOCK)
-        struct.pack_into("<BHH", out, first + k * (5 + _STORED_BLOCK), k == blocks - 1, n, n ^ 0xFFFF)  # BTYPE 00
+        struct.pack_into("<BHH", out, block_at(k), k == blocks - 1, n, n ^ 0xFFFF)  # BTYPE 00
+    struct.pack_into("2s", out, at + 8, b"\x78\x01")  # deflate, 32 KiB window (0x7801 % 31 == 0)
     got, adler = 0, 1
     for data in _inflated(path, need, idat):
+        _check_filters(path, layout, got, data)
         adler = zlib.adler32(data, adler)
         view = memoryview(data)
-        while view:  # into its block(s): row byte j lies past j // block + 1 block headers
+        while view:  # into its block(s)
             k, j = divmod(got, _STORED_BLOCK)
             n = min(len(view), _STORED_BLOCK - j)
-            pos = first + k * (5 + _STORED_BLOCK) + 5 + j
+            pos = block_at(k) + 5 + j
             out[pos : pos + n] = view[:n]
             view, got = view[n:], got + n
-    end = first + 5 * blocks + need
+        del data, view  # (let go before the next piece is inflated: one piece held at a time, png_read_bytes)
+    end = block_at(blocks - 1) + 5 + need - (blocks - 1) * _STORED_BLOCK  # past the last block's bytes
     struct.pack_into(">I", out, end, adler)
-    struct.pack_into(">I", out, end + 4, zlib.crc32(memoryview(out)[at + 4 : end + 4]))
+    for c in range(n_idat):  # each IDAT's length, kind and CRC around its blocks
+        start = at if c == 0 else block_at(c * per) - 8
+        stop = end + 4 if c == n_idat - 1 else block_at((c + 1) * per) - 12  # (its CRC, the next one's 8 bytes)
+        struct.pack_into(">I4s", out, start, stop - start - 8, b"IDAT")
+        struct.pack_into(">I", out, stop, zlib.crc32(memoryview(out)[start + 4 : stop]))
     struct.pack_into(">I4sI", out, end + 8, 0, b"IEND", zlib.crc32(b"IEND"))
     return np.frombuffer(out, np.uint8)
 
@@ -208,6 +300,29 @@ def check_png_chunks(path, buf) -> list:
     raise FormatError(path, f"a PNG truncated: its chunks end at byte {pos} of {size} without IEND")
 
 
+#: the length of a tRNS by colour type: one grey sample, one RGB (a palette's: up to its entries)
+_TRNS_BYTES = {0: 2, 2: 6}
+
+
+def _palette_chunks(view, spans, header_colour: int) -> list:
+    """The PLTE and tRNS chunks (``spans``, over the file's bytes ``view``) libpng uses: before
+    the first IDAT, the first of each, a PLTE for a palette image alone, a tRNS of its colour
+    type's length (none with an alpha channel). Why: libpng ignores the others and says so on
+    the process's stderr ("libpng warning: tRNS: invalid", "PLTE: ignored in grayscale PNG"); one
+    after the pixels it ignored too, and the PNG built for it has them before its IDAT."""
+    kept = {}
+    for kind, a, b in spans[1:]:
+        if kind == b"IDAT":
+            break
+        if kind in kept or kind not in (b"PLTE", b"tRNS"):
+            continue
+        if kind == b"PLTE" and header_colour == 3:
+            kept[kind] = bytes(view[a:b])
+        elif kind == b"tRNS" and (header_colour == 3 or b - a - 12 == _TRNS_BYTES.get(header_colour)):
+            kept[kind] = bytes(view[a:b])
+    return [kept[k] for k in (b"PLTE", b"tRNS") if k in kept]
+
+
 def decode_png(path, header: dict) -> np.ndarray:
     """The PNG's pixels as stored (OpenCV's IMREAD_UNCHANGED: 16-bit samples come back exact, in
     the machine's byte order), as one greyscale (rows, cols) image. A colour PNG whose colour
@@ -225,20 +340,20 @@ def decode_png(path, header: dict) -> np.ndarray:
     # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
     # incorrect sRGB profile"); gamma is a display's business, never applied to the values
     head = bytes(view[: spans[0][2]])  # the signature and IHDR (check_png_chunks: IHDR is the first chunk)
-    kept = [bytes(view[a:b]) for k, a, b in spans[1:] if k in (b"PLTE", b"tRNS")]
+    kept = _palette_chunks(view, spans, header["colour"])
     raw = _stored_png(path, header, interlaced, head, kept, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
     del view  # (the file's bytes: let go before the pixels are decoded beside the PNG built of them)
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
         raise FormatError(path, "a PNG that OpenCV cannot decode: truncated or corrupt")
     if data.ndim == 2:
-        return data
+        return _unexpanded(data, header)
     colours = data[..., :3] if data.shape[2] >= 3 else data[..., :1]
     alpha = data[..., 3] if data.shape[2] == 4 else (data[..., 1] if data.shape[2] == 2 else None)
     opaque = alpha is None or bool(np.all(alpha == np.iinfo(data.dtype).max))
     equal = all(np.array_equal(colours[..., 0], colours[..., k]) for k in range(1, colours.shape[2]))
     if equal and opaque:
-        return np.ascontiguousarray(colours[..., 0])
+        return _unexpanded(np.ascontiguousarray(colours[..., 0]), header)
     kind = _PNG_COLOURS[header["colour"]]
     why = "its colour channels differ" if not equal else "its alpha channel is not opaque everywhere"
     raise FormatError(
@@ -246,6 +361,19 @@ def decode_png(path, header: dict) -> np.ndarray:
         f"a {kind} PNG, {why}: a viewer's colour rendering, not one channel of counts; "
         "export the radiograph as 8- or 16-bit greyscale",
     )
+
+
+def _unexpanded(grey: np.ndarray, header: dict) -> np.ndarray:
+    """A 1-, 2- or 4-bit greyscale PNG's samples as stored, 0..2**depth - 1, from OpenCV's bytes.
+    Why: OpenCV has libpng expand them to 8 bits by repeating their bits (1 -> 255 at 1 bit,
+    3 -> 255 at 2: ``v * 255 // (2**depth - 1)``), and every count read scaled. Undone exactly
+    (in place: OpenCV's array), and only where the bytes are so scaled: a value past the depth's
+    top is one (none is where a libpng leaves them packed, unscaled)."""
+    depth = header["depth"]
+    if header["colour"] != 0 or depth >= 8 or not grey.size or int(grey.max()) < 1 << depth:
+        return grey
+    grey //= 255 // ((1 << depth) - 1)  # 255, 85, 17: bit replication is this multiple
+    return grey
 
 
 # -- DICOM ----------------------------------------------------------------------------------------
