@@ -5892,3 +5892,51 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
     assert seen[-1] >= 0.75 * 250 and model.measured() == (0.0, 0.0), seen
     assert after[0] == "XOF", after  # at the reading that showed it: nothing asked before the switch-off
     assert "X-rays switched off" in str(caught.value) and not model.xray_on
+
+
+class _JitteryMeter(L8121Model):
+    """A unit whose current meter reads ``jitter`` µA either side of the tube's current, by turns
+    (reading k of the model's clock, k = t / ``step``). A fake of the meter's noise: the emulator
+    has none, and the readings' order is what the driver judges, so it is made exact here."""
+
+    def __init__(self, *, jitter: float, step: float, **kw):
+        super().__init__(**kw)
+        self._jitter, self._step = jitter, step
+
+    def _measured(self, t):
+        kv, ua = super()._measured(t)
+        if self._state != SourceState.XRAY_ON:
+            return kv, ua
+        k = round(t / self._step)
+        return kv, max(0.0, ua + (self._jitter if k % 2 else -self._jitter))
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_ramp_whose_readings_jitter_within_the_tolerance_is_not_called_dropped(dialect):
+    """A meter whose readings jitter by less than the tolerance either side of the tube's current
+    reads stable at the setting (L8121.md: within tolerance of the set values), so two readings
+    in a row may differ by up to twice the tolerance with nothing changed in the beam. At 10 µA
+    with a 2.5 µA tolerance (drop bound 5 µA), a ramp read 1+2.4 -> "3", then 2-2.4 -> "0": a
+    fall of 3 µA, more than one tolerance, under the drop bound: "beam dropped while ramping
+    up" switched off a sound beam at every low-current exposure on a noisy meter. The model's
+    clock moves a tenth of the ramp after each reading of the current: no timing in the test."""
+    now = [0.0]
+    step, jitter, tol = 0.1, 2.4, 2.5
+    model = _JitteryMeter(jitter=jitter, step=step, dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
+    word = "SCU" if dialect == "B" else "SAR"
+
+    def tick():
+        now[0] += step
+        model.inject_after(word, tick)
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0, ua_tolerance=tol) as src,
+    ):
+        model.inject_after(word, tick)
+        reading = src.on(60, 10)
+        try:
+            assert abs(reading["current_ua"] - 10) <= tol, reading
+            assert model.xray_on and "XOF" not in commands_after(model, "XON")
+        finally:
+            src.off()
