@@ -3250,10 +3250,15 @@ class L8121:
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
-            fell = _fallen_back(
+            # after XON only: the ramp then starts from nothing, so a fall is a drop. After a
+            # change while on, L8121.md does not say where the ramp starts: a unit may ramp again
+            # from zero (tests/l8121_second_reading.py reads it so), its values falling from the
+            # old setting first -- every change while on was switched off as a dropped beam
+            # (review s54rv); the stable wait's time-out still catches one that stays down
+            fell = after_xon and _fallen_back(
                 m_kv, m_ua, highest, (tol_kv, tol_ua), self._beam_span((kv, ua))[0], c.beam_drop_fraction
             )
-            if fell is not None:
+            if fell:
                 self._trip(f"beam dropped while ramping up: {fell}")
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():
