@@ -812,18 +812,21 @@ def _fallen_back(
     in the ramp; ``low``: the lower of the setting and the one it ramps from), or None.
 
     L8121.md: the measured values "ramp towards the set values" after XON or a change, so a ramp
-    stays between the two settings and a reading never falls back from one before it by more
-    than a reading's tolerance. One that fell back that far AND lies under the beam monitor's
+    stays between the two settings. A reading may lie up to a tolerance either side of the tube's
+    value (a beam whose readings do is stable), so one falls back from one before it by up to
+    twice the tolerance with nothing changed in the beam: by one tolerance, a noisy meter at a
+    low current (10 µA, 2.5 µA: readings 3 then 0 on a ramp through 1 and 2 µA) was called
+    dropped (review s54rv). One that fell back further AND lies under the beam monitor's
     drop bound (``drop_fraction`` of the lower setting: what :meth:`L8121.check` calls dropped
     once the beam is stable) is a dropped beam, not a ramp still climbing: B's STS reads XON all
     the while (it names no dropped beam), and only the stable wait's time-out caught it, up to
-    ``stable_timeout_s`` later. Both conditions: the tolerance keeps a reading's jitter from
+    ``stable_timeout_s`` later. Both conditions: the two tolerances keep a reading's jitter from
     tripping, the bound a legitimate ramp down to a lower setting."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
     ):
-        if value < drop_fraction * setting and top - value > tol:
+        if value < drop_fraction * setting and top - value > 2 * tol:
             return (
                 f"measured {what} {value:g} {unit} after {top:g} {unit}, below {drop_fraction:.0%} of the set "
                 f"{setting} {unit}"
@@ -3247,10 +3250,15 @@ class L8121:
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
-            fell = _fallen_back(
+            # after XON only: the ramp then starts from nothing, so a fall is a drop. After a
+            # change while on, L8121.md does not say where the ramp starts: a unit may ramp again
+            # from zero (tests/l8121_second_reading.py reads it so), its values falling from the
+            # old setting first -- every change while on was switched off as a dropped beam
+            # (review s54rv); the stable wait's time-out still catches one that stays down
+            fell = after_xon and _fallen_back(
                 m_kv, m_ua, highest, (tol_kv, tol_ua), self._beam_span((kv, ua))[0], c.beam_drop_fraction
             )
-            if fell is not None:
+            if fell:
                 self._trip(f"beam dropped while ramping up: {fell}")
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():

@@ -671,7 +671,11 @@ class SerialTransport:
                 finally:
                     self._close_if_asked()
             finally:
-                self._owner = self._running = None
+                try:
+                    if self._close_after_query:  # (checked here: no call when there is none to do)
+                        self._close_left()
+                finally:
+                    self._owner = self._running = None
 
     def _close_if_asked(self) -> None:
         """At a query's end, the exchange's lock still held and recorded: a close a signal's
@@ -680,8 +684,18 @@ class SerialTransport:
         at once, not left to an end that has passed."""
         self._running = None
         if self._close_after_query:
-            self._close_after_query = False
+            # the mark cleared only once the close is done: a second stop raising as _close_all
+            # starts left it dropped, the port open and its lock share held after a close that had
+            # returned; the caller's finally (_close_left) does it then (review s54rv)
             self._close_all()
+            self._close_after_query = False
+
+    def _close_left(self) -> None:
+        """In a query's (or an open's) last finally, the lock still held and recorded: a close
+        :meth:`_close_if_asked` was stopped before doing (a second stop at its start) is done."""
+        if self._close_after_query:
+            self._close_all()
+            self._close_after_query = False
 
     def _open_port(self) -> None:
         if self._closing:  # closed meanwhile by another thread: not opened again behind its back
@@ -1029,7 +1043,11 @@ class SerialTransport:
                 finally:
                     self._close_if_asked()
             finally:
-                self._owner = self._running = None
+                try:
+                    if self._close_after_query:  # (checked here: no call when there is none to do)
+                        self._close_left()
+                finally:
+                    self._owner = self._running = None
 
     def _query(self, command: str, payload: bytes) -> str:
         """:meth:`query`'s attempts, the exchange's lock held."""

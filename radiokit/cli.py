@@ -2289,7 +2289,12 @@ def _give_back_unmasked(found: dict) -> None:
         finally:
             try:
                 for signum in dict.fromkeys(came):  # each stop once, in the order they came
-                    signal.raise_signal(signum)
+                    try:
+                        signal.raise_signal(signum)
+                    except BaseException as exc:
+                        # a caller's handler that raises (Python's Ctrl-C) cut the loop short: the
+                        # stops noted after it were lost (review s54rv). Carried to the end instead
+                        error = error or exc
             finally:
                 if error is not None:
                     raise error

@@ -2008,3 +2008,64 @@ def test_the_give_back_without_a_signal_mask_puts_every_handler_back_and_loses_n
     assert commands == []  # nothing went to the finished command's handler
     assert sorted(got) == sorted(stops), got  # each stop reached the caller's handler, once
     assert outcome == "the caller's"
+
+
+def test_the_give_back_without_a_signal_mask_hands_every_noted_stop_on_when_the_first_handler_raises(monkeypatch):
+    """Windows' give-back (no ``pthread_sigmask``): two stops noted while the notes stood (a
+    Ctrl-C and a SIGTERM, Windows' two) are raised to the caller's handlers once all are back. The caller's
+    Ctrl-C handler raises (Python's way): that raise cut the loop of raises short, and the
+    SIGTERM noted after it never reached the caller's handler -- a stop lost. Now each noted stop
+    reaches its handler, and the first raise is raised after them. Forced on Linux as the test
+    above; a profile hook notes the two stops, as their C handler does, once every signal's
+    handler is the note (none of the caller's back yet)."""
+    import _thread
+    import collections
+    import signal
+
+    from radiokit.cli import _TAKEN, _give_back
+
+    got, commands = [], []
+
+    def interrupt(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt("the caller's")
+
+    def mine(signum, frame):
+        got.append(signum)
+
+    def command(signum, frame):
+        commands.append(signum)
+
+    ours = {sig: interrupt if sig == signal.SIGINT else mine for sig in _TAKEN}
+    stops = [signal.SIGINT, signal.SIGTERM]  # Windows' two (Python runs SIGINT's first)
+    sent = []
+
+    def noting() -> bool:
+        return all(signal.getsignal(sig) not in (command, ours[sig]) for sig in _TAKEN)
+
+    def hook(frame, event, arg):
+        if _puts_a_handler_back(frame, event, arg) and not sent and noting():
+            sent.extend(stops)
+            collections.deque(map(_thread.interrupt_main, stops), maxlen=0)  # both noted, none run yet
+
+    before = {sig: signal.signal(sig, command) for sig in _TAKEN}
+    outcome = None
+    try:
+        with monkeypatch.context() as m:
+            m.delattr(signal, "pthread_sigmask")
+            sys.setprofile(hook)
+            try:
+                _give_back(ours)
+            except KeyboardInterrupt as exc:
+                outcome = str(exc)
+            finally:
+                sys.setprofile(None)
+        after = {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert sent == stops, "the hook never saw every note set"
+    assert after == ours, after
+    assert commands == []
+    assert sorted(got) == sorted(stops), got  # each stop reached the caller's handler, once
+    assert outcome == "the caller's"

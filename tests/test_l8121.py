@@ -5892,3 +5892,111 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
     assert seen[-1] >= 0.75 * 250 and model.measured() == (0.0, 0.0), seen
     assert after[0] == "XOF", after  # at the reading that showed it: nothing asked before the switch-off
     assert "X-rays switched off" in str(caught.value) and not model.xray_on
+
+
+class _JitteryMeter(L8121Model):
+    """A unit whose current meter reads ``jitter`` µA either side of the tube's current, by turns
+    (reading k of the model's clock, k = t / ``step``). A fake of the meter's noise: the emulator
+    has none, and the readings' order is what the driver judges, so it is made exact here."""
+
+    def __init__(self, *, jitter: float, step: float, **kw):
+        super().__init__(**kw)
+        self._jitter, self._step = jitter, step
+
+    def _measured(self, t):
+        kv, ua = super()._measured(t)
+        if self._state != SourceState.XRAY_ON:
+            return kv, ua
+        k = round(t / self._step)
+        return kv, max(0.0, ua + (self._jitter if k % 2 else -self._jitter))
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_ramp_whose_readings_jitter_within_the_tolerance_is_not_called_dropped(dialect):
+    """A meter whose readings jitter by less than the tolerance either side of the tube's current
+    reads stable at the setting (L8121.md: within tolerance of the set values), so two readings
+    in a row may differ by up to twice the tolerance with nothing changed in the beam. At 10 µA
+    with a 2.5 µA tolerance (drop bound 5 µA), a ramp read 1+2.4 -> "3", then 2-2.4 -> "0": a
+    fall of 3 µA, more than one tolerance, under the drop bound: "beam dropped while ramping
+    up" switched off a sound beam at every low-current exposure on a noisy meter. The model's
+    clock moves a tenth of the ramp after each reading of the current: no timing in the test."""
+    now = [0.0]
+    step, jitter, tol = 0.1, 2.4, 2.5
+    model = _JitteryMeter(jitter=jitter, step=step, dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
+    word = "SCU" if dialect == "B" else "SAR"
+
+    def tick():
+        now[0] += step
+        model.inject_after(word, tick)
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0, ua_tolerance=tol) as src,
+    ):
+        model.inject_after(word, tick)
+        reading = src.on(60, 10)
+        try:
+            assert abs(reading["current_ua"] - 10) <= tol, reading
+            assert model.xray_on and "XOF" not in commands_after(model, "XON")
+        finally:
+            src.off()
+
+
+class _ReRampingUnit(L8121Model):
+    """A unit whose tube values, on a change while on, fall to nothing over ``fall_s`` (the supply
+    discharging) and then ramp to the new setting over the ramp time: the reading of L8121.md's
+    "ramp ... after XON or a change" that tests/l8121_second_reading.py makes (the values ramp
+    again from zero there, at once). A fake of that unit's ramp: the emulator ramps from where the
+    tube is."""
+
+    def __init__(self, *, fall_s: float, **kw):
+        super().__init__(**kw)
+        self._fall_s, self._change = fall_s, None
+
+    def _retarget(self, t):
+        if self._state == SourceState.XRAY_ON:
+            self._change = (t, self._measured(t))
+
+    def _measured(self, t):
+        if self._change is None or self._state != SourceState.XRAY_ON:
+            return super()._measured(t)
+        t0, (kv0, ua0) = self._change
+        gone = t - t0
+        if gone < self._fall_s:
+            f = 1 - gone / self._fall_s
+            return kv0 * f, ua0 * f
+        g = min(1.0, (gone - self._fall_s) / self.ramp_s)
+        return self._set_kv * g, self._set_ua * g
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_change_while_on_that_ramps_again_from_zero_is_not_called_dropped(dialect):
+    """A setting changed while the beam is on (set_values): on a unit whose values ramp again
+    from zero after a change (the second reading of L8121.md, tests/l8121_second_reading.py),
+    their fall to nothing is that ramp's start, not a dropped beam. "Beam dropped while ramping
+    up" switched such a unit off at every change while on: its readings fell from the old setting
+    past the drop bound. After XON the ramp starts from nothing, so a fall there is still a drop
+    (the test above). The model's clock moves a tenth of the ramp after each reading of the
+    current: no timing in the test."""
+    now = [0.0]
+    step = 0.1
+    model = _ReRampingUnit(fall_s=0.5, dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
+    word = "SCU" if dialect == "B" else "SAR"
+
+    def tick():
+        now[0] += step
+        model.inject_after(word, tick)
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0) as src,
+    ):
+        model.inject_after(word, tick)
+        src.on(60, 250)
+        try:
+            assert src.set_values(70, 250) == (70, 250)
+            kv, ua = src.measured()
+            assert abs(kv - 70) <= src.config.tolerance_kv(70) and abs(ua - 250) <= src.config.tolerance_ua(250)
+            assert model.xray_on and "XOF" not in commands_after(model, "XON")
+        finally:
+            src.off()

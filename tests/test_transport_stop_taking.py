@@ -36,7 +36,7 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo
 
 #: the transport's code that takes and gives back the exchange's lock (the helpers it called then
 #: included, where they exist)
-_TAKING = {"query", "open", "_taken", "_given_back", "_close_if_asked"}
+_TAKING = {"query", "open", "_taken", "_given_back", "_close_if_asked", "_close_left"}
 REPLY_TIMEOUT_S = 2.0  # the driver's: what a reply waited for in vain costs
 OFF_BOUND_S = REPLY_TIMEOUT_S / 4
 
@@ -202,3 +202,45 @@ def test_a_close_from_a_handler_as_the_link_is_taken_or_given_back_never_waits_f
         link.close()
     assert len(tried) > 5, tried
     assert not failures, failures
+
+
+def test_a_switch_offs_close_left_to_its_end_is_done_when_a_second_stop_lands_as_that_end_starts(served):
+    """Two stops in the thread whose switch-off (XOF) holds the link: the first's handler closes
+    the link mid-query (left to the query's end: a switch-off is not cut short), the second
+    raises as that end (``_close_if_asked``) starts, as a signal's handler runs at a function's
+    start. The close the first asked for is done all the same: before, it was dropped (its flag
+    cleared by the next query's start), the port left open and its lock share held after a close
+    that had returned. A trace function stands in for the signals' timing (they cannot be aimed);
+    the link and the pty are real."""
+
+    class _Off:
+        blind = frozenset({"XOF"})
+
+        def __call__(self, ask):
+            ask("TYP")
+
+    _, server = served
+    link = SerialTransport(server.url, **_SHORT, retries=0)
+    link.on_reconnect = _Off()
+    link.query("STS")  # opened, its lock share taken
+    done = []
+
+    def tracer(frame, event, arg):
+        if event != "call" or frame.f_code.co_filename != transport.__file__:
+            return None
+        if frame.f_code.co_name == "_query" and "close" not in done:
+            done.append("close")
+            link.close()  # the first stop's handler
+        elif frame.f_code.co_name == "_close_if_asked" and "close" in done:
+            done.append("stop")
+            raise StopSignal(signal.SIGTERM)  # the second's, as the query's end starts
+        return None
+
+    try:
+        with pytest.raises(StopSignal):
+            _traced(tracer, lambda: link.query("XOF"))
+        assert done == ["close", "stop"], done
+        assert _free(link)
+        assert not link.is_open and link._hold is None, "the close the first stop asked for was dropped"
+    finally:
+        link.close()
