@@ -821,7 +821,10 @@ def _fallen_back(
     once the beam is stable) is a dropped beam, not a ramp still climbing: B's STS reads XON all
     the while (it names no dropped beam), and only the stable wait's time-out caught it, up to
     ``stable_timeout_s`` later. Both conditions: the two tolerances keep a reading's jitter from
-    tripping, the bound a legitimate ramp down to a lower setting."""
+    tripping, the bound a ramp that overshoots and settles. Called only in the ramp after XON,
+    which starts from nothing: after a setting changed while on, L8121.md leaves open where the
+    ramp starts (a unit that ramps again from zero reads a fall from the old setting first), so
+    there the stable wait alone judges it (review s54rvsig)."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
