@@ -11,6 +11,8 @@ import signal
 import sys
 from pathlib import Path
 
+from radiokit.checks import shown_name  # a user's file name as messages print it
+
 SOURCE_ACTIONS = ("probe", "status", "warm-up", "on", "off")
 
 #: The longest ``source on --for``, s. A bench check (alignment, a dose-rate reading) takes
@@ -104,14 +106,16 @@ def _run(args) -> int:
     if args.output:
         p.output = str(args.output)
     if Path(p.output).suffix.lower() not in (".h5", ".hdf5", ".nxs"):  # an HDF5 file under x.tif fooled readers
-        print(f"error: {p.output}: the experiment file is HDF5; name it .h5 (or .hdf5, .nxs)", file=sys.stderr)
+        print(
+            f"error: {shown_name(p.output)}: the experiment file is HDF5; name it .h5 (or .hdf5, .nxs)", file=sys.stderr
+        )
         return 2
     if args.dialect:
         p.source.limits["dialect"] = args.dialect
     try:  # the lab's bench or the virtual one: refused here, before the dry run's plan or the run's first file
         (check_sim if args.sim else check_lab)(p)
     except DeviceError as exc:
-        print(f"error: {args.protocol}: {exc}", file=sys.stderr)
+        print(f"error: {shown_name(args.protocol)}: {exc}", file=sys.stderr)
         return 2
     from radiokit.io import restore_previous
 
@@ -125,7 +129,8 @@ def _run(args) -> int:
     if args.resume and not Path(p.output).exists():
         # said here in one line, and the new file checked as any new file (the run's own log
         # warning reached the terminal with a timestamp and a logger's name)
-        _say(NO_FILE.format(out=p.output, then="the plan is the whole series" if args.dry_run else "starting it"))
+        then = "the plan is the whole series" if args.dry_run else "starting it"
+        _say(NO_FILE.format(out=shown_name(p.output), then=then))
         args.resume = False
     if not args.resume:  # the experiment file is never the protocol (an existing one: refused by run())
         from radiokit.io import check_output
@@ -136,14 +141,31 @@ def _run(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         if Path(p.output).exists() and not args.overwrite:  # refused as an option is (README: exit 2)
-            print(f"error: {EXISTS.format(out=p.output)}", file=sys.stderr)
+            print(f"error: {EXISTS.format(out=shown_name(p.output))}", file=sys.stderr)
             return 2
     code, done = _resumable(args, p, held)
     if code is not None:
         return code
+    _say_unstated_exposure(args, p)  # the run's first line, before its connect (the dry run's too)
     if args.dry_run:
         return _dry_run(args, p, done)
     return _run_series(args, p)
+
+
+def _say_unstated_exposure(args, p) -> None:
+    """The exposure the protocol did not state and the run takes from the defaults, one line, if
+    any. Why said, not refused: protocols that rely on the paper's 60 kV and 250 uA run as before;
+    but a forgotten key must not reach the tube unsaid (a misspelt one is refused: unknown key)."""
+    if not p.unstated_exposure:
+        return
+    from acquisition.protocols.compression_series import SourceSettings
+
+    units = {"voltage_kv": "kV", "current_ua": "uA"}
+    values = ", ".join(f"{key} = {getattr(SourceSettings, key):g} {units[key]}" for key in p.unstated_exposure)
+    _say(
+        f"note: {shown_name(args.protocol)}: the exposure is not stated in [source]; X-rays at the "
+        f"default{'s' if len(p.unstated_exposure) > 1 else ''} {values} (the paper's)"
+    )
 
 
 #: ``--resume`` on a file that holds every frame (the run and the dry run alike).
@@ -175,7 +197,7 @@ def _resumable(args, p, held: Path | None = None) -> tuple[int | None, dict | No
     except (DeviceError, OSError, ValueError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2, None
-    _say(COMPLETE.format(out=p.output, n=n), err=False)
+    _say(COMPLETE.format(out=shown_name(p.output), n=n), err=False)
     return 0, done
 
 
@@ -208,7 +230,7 @@ def _not_for_a_protocol(args) -> str | None:
         return None
     return (
         f"{', '.join(given)}: only for 'radiokit acquire source ACTION'; a protocol's port, baud rate, "
-        f"exposure and time-outs are its [source] section's ({args.protocol})"
+        f"exposure and time-outs are its [source] section's ({shown_name(args.protocol)})"
     )
 
 
@@ -218,8 +240,8 @@ def _dry_run(args, p, done) -> int:
     from acquisition.protocols.compression_series import plan
 
     pl = plan(p, done, sim=args.sim)
-    where = "the virtual bench" if args.sim else f"source {p.source.port}"
-    print(f"plan: {p.name} -> {p.output} on {where}{' (resuming)' if done else ''}")
+    where = "the virtual bench" if args.sim else f"source {shown_name(p.source.port)}"
+    print(f"plan: {shown_name(p.name)} -> {shown_name(p.output)} on {where}{' (resuming)' if done else ''}")
     print(pl.table())
     print(
         f"\n{pl.n_frames} frames; about {pl.duration_s / 60:.1f} min, X-rays on about {pl.beam_on_s / 60:.1f} min "
@@ -398,14 +420,14 @@ def _series(guard, args, p) -> int:
         if r is not None and r.phase != "connect" and getattr(r, "previous_aside", None) is not None:
             _say(f"stopped in phase {r.phase}; {_aside(r, args)}")
         elif r is not None and r.phase != "connect" and r.previous_kept:
-            _say(f"stopped in phase {r.phase}; {_KEPT.format(out=r.output)}")
+            _say(f"stopped in phase {r.phase}; {_KEPT.format(out=shown_name(r.output))}")
         elif r is not None and getattr(r, "file_removed", False):
-            _say(f"stopped in phase {r.phase}; {_REMOVED.format(out=r.output)}")
+            _say(f"stopped in phase {r.phase}; {_REMOVED.format(out=shown_name(r.output))}")
         elif r is not None and getattr(r, "file_lost", False):
             _say(f"stopped in phase {r.phase}; {_lost(r)}")
         elif r is not None and r.phase != "connect":
             _say(
-                f"stopped in phase {r.phase}; {r.frames_total} frames saved in {r.output}; {again} completes the series"
+                f"stopped in phase {r.phase}; {r.frames_total} frames saved in {shown_name(r.output)}; {again} completes the series"
             )
         return _finish(r, 1)
     # complete, the tube confirmed off or the warning due: a Ctrl-C from here on (up to 100 ms
@@ -414,12 +436,12 @@ def _series(guard, args, p) -> int:
     # command's records it: SignalGuard.finish)
     guard.finish(record=False)
     if res.already_complete:  # completed since _resumable looked (raw data is never modified, DESIGN.md)
-        _say(COMPLETE.format(out=res.output, n=res.frames_total), err=False)
+        _say(COMPLETE.format(out=shown_name(res.output), n=res.frames_total), err=False)
         return 0
     oh = sorted(res.per_frame_overhead_s)
     med = oh[len(oh) // 2] * 1000 if oh else float("nan")
     _say(
-        f"{res.output}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
+        f"{shown_name(res.output)}: {res.frames_written} frames written ({res.frames_total} in the file) in {res.seconds:.1f} s; "
         f"X-rays on {res.beam_on_s:.1f} s; write + bookkeeping {med:.1f} ms per frame (median)",
         err=False,
     )
@@ -437,14 +459,14 @@ def _stopped_line(exc, r, args, p) -> str:
     from acquisition.guardian import StopSignal
 
     name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
-    saved = f"{r.frames_total} frames saved in {r.output}" if r else "nothing saved"
+    saved = f"{r.frames_total} frames saved in {shown_name(r.output)}" if r else "nothing saved"
     where = f"\nstopped by {name}{' in phase ' + r.phase if r else ''}"
     if r is not None and getattr(r, "previous_aside", None) is not None:
         return f"{where}; {_aside(r, args)}"
     if r is not None and r.previous_kept:
-        return f"{where}; {_KEPT.format(out=r.output)}"
+        return f"{where}; {_KEPT.format(out=shown_name(r.output))}"
     if r is not None and getattr(r, "file_removed", False):
-        return f"{where}; {_REMOVED.format(out=r.output)}"
+        return f"{where}; {_REMOVED.format(out=shown_name(r.output))}"
     if r is not None and getattr(r, "file_lost", False):
         return f"{where}; {_lost(r)}"
     if r is not None and not r.frames_total and not Path(r.output).exists():  # stopped before it was made
@@ -483,22 +505,21 @@ _LOST = "{out} was removed during the run: its {n} frame(s) are lost; the same c
 def _lost(r) -> str:
     """What is left of a run whose file was removed under it; the loss said once (the error line
     says it when the removal is what stopped the run)."""
-    if any(f"{r.output}: removed while" in line for line in _SAID):
+    if any(f"{shown_name(r.output)}: removed while" in line for line in _SAID):
         return "nothing saved; the same command starts the series again"
-    return _LOST.format(out=r.output, n=r.frames_total)
+    return _LOST.format(out=shown_name(r.output), n=r.frames_total)
 
 
 def _aside(r, args) -> str:
     """An --overwrite stopped before its first frame whose old file could not be put back (the
     folder turned unwritable): where it is, and how it comes back. Not `--resume`: the name holds
     the new run's empty file, and the next run of it puts the old series back first."""
-    import shlex
 
     plain = resume_command(args).removesuffix(" --resume")
     return (
-        f"no frame taken: the previous series could not be put back under {r.output}; it is kept in "
-        f"{r.previous_aside}. Once the folder is writable, the next `{plain}` (plain, --resume or --overwrite) "
-        f"puts it back first; or `mv -f {shlex.quote(str(r.previous_aside))} {shlex.quote(str(r.output))}`"
+        f"no frame taken: the previous series could not be put back under {shown_name(r.output)}; it is kept in "
+        f"{shown_name(r.previous_aside)}. Once the folder is writable, the next `{plain}` (plain, --resume or --overwrite) "
+        f"puts it back first; or `mv -f {_shell_word(str(r.previous_aside))} {_shell_word(str(r.output))}`"
     )
 
 
@@ -506,8 +527,6 @@ def resume_command(args) -> str:
     """The command that completes the file this run writes: every option that chose that file or
     how its devices speak (``-o``, ``--dialect``, ``--sim``), shell-quoted. A hint that left out
     ``-o`` resumed the protocol's own default output, another file, when followed literally."""
-    import shlex
-
     words = ["radiokit", "acquire", args.protocol]
     if args.sim:
         words.append("--sim")
@@ -515,7 +534,32 @@ def resume_command(args) -> str:
         words += ["-o", str(args.output)]
     if args.dialect:
         words += ["--dialect", args.dialect]
-    return shlex.join([*words, "--resume"])
+    return " ".join(_shell_word(w) for w in [*words, "--resume"])
+
+
+def _shell_word(word: str) -> str:
+    """``word`` as a shell reads it back: quoted by :func:`shlex.quote`, unless it holds a
+    character a terminal acts on (an escape, a newline) or a backslash -- a name :func:`shown_name`
+    prints quoted -- then in bash's ``$'...'``, each such character escaped. Why: a name with
+    an escape sequence, quoted by shlex alone, reached the terminal raw in the command offered
+    to complete the series."""
+    import shlex
+
+    if shown_name(word) == word:
+        return shlex.quote(word)
+    escaped = (
+        "\\" + c
+        if c in "\\'"
+        else c
+        if c.isprintable()
+        else f"\\x{ord(c):02x}"
+        if ord(c) < 0x80  # (bash's \\xHH is a byte: above 0x7f, the character's code)
+        else f"\\u{ord(c):04x}"
+        if ord(c) <= 0xFFFF
+        else f"\\U{ord(c):08x}"
+        for c in word
+    )
+    return "$'" + "".join(escaped) + "'"
 
 
 def _one_line(exc) -> str:
@@ -611,20 +655,22 @@ def _source_refusal(args) -> str | None:
     for option, value in (("--reply-timeout", args.reply_timeout), ("--ready-timeout", args.ready_timeout)):
         if value is not None and not (math.isfinite(value) and value > 0):
             return f"{option} {value:g}: expected a positive finite number of seconds; nothing was sent"
-    from acquisition.l8121 import REPLY_TIMEOUT_MAX_S  # the configuration's own bound, said before the port opens
-    from radiokit.checks import shown
-
-    if args.reply_timeout is not None and args.reply_timeout > REPLY_TIMEOUT_MAX_S:
-        return (
-            f"--reply-timeout {shown(args.reply_timeout)}: at most {REPLY_TIMEOUT_MAX_S:g} s (a controller silent "
-            "that long has failed, L8121.md; each wait of a switch-off is one); nothing was sent"
-        )
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
         # refused before the port is opened, as warm_up() would refuse it after TYP and STS (exit 1)
         return (
             f"--timeout {args.timeout:g}: the warm-up time-out must be a positive finite number of "
             "seconds; nothing was sent"
         )
+    from acquisition.l8121 import time_refusal  # the configuration's own bounds, said before the port opens
+    from radiokit.checks import shown
+
+    for option, value, key in (
+        ("--reply-timeout", args.reply_timeout, "timeout_s"),
+        ("--ready-timeout", args.ready_timeout, "ready_timeout_s"),
+        ("--timeout", args.timeout, "warmup_timeout_s"),
+    ):
+        if value is not None and (said := time_refusal(key, value)) is not None:
+            return f"{option} {shown(value)}: {said}; nothing was sent"
     return None
 
 
@@ -775,7 +821,7 @@ def _probe_stopped(exc, args, state) -> int:
         return 128 + getattr(exc, "signum", 2)
     said = state.said if state is not None else "unknown"
     _say(
-        f"{args.port}: stopped by {name} before the controller's power-on checks were waited out; the probe's STS "
+        f"{shown_name(args.port)}: stopped by {name} before the controller's power-on checks were waited out; the probe's STS "
         f"read state {said}: the controller has not confirmed the tube off"
     )
     _say(TUBE_WARNING)
@@ -822,7 +868,7 @@ def _probe_ends(guard, result, args, state) -> int:
         else:  # the wait's session could not read the controller (silent, refused): said so
             read = "the probe's STS (the wait for the power-on checks read nothing)"
         if state.confirms_off:
-            print(f"{args.port}: the controller's power-on checks are over: state {state.said}")
+            print(f"{shown_name(args.port)}: the controller's power-on checks are over: state {state.said}")
             return 0
     if state is not None and state.emitting:
         # the switch-off owns the command from here: a stop only says "please wait" (raised before
@@ -830,7 +876,7 @@ def _probe_ends(guard, result, args, state) -> int:
         # sets the exit code once the tube is confirmed off (below)
         guard.cleanup()
         _say(
-            f"{args.port}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
+            f"{shown_name(args.port)}: X-RAYS ARE ON ({read} read state {state.name}): switching them off "
             "(`source off`, confirmed by STS); no radiokit command leaves them on (other software, a crash, a power "
             "cut or a hand at the controller did)"
         )
@@ -839,7 +885,7 @@ def _probe_ends(guard, result, args, state) -> int:
         # a stop it only acknowledged meanwhile: 128 + N once confirmed off (_guarded)
         return _source_guarded(guard, off)
     said = state.said if state is not None else "unknown"
-    _say(f"{args.port}: {read} read state {said}: the controller has not confirmed the tube off")
+    _say(f"{shown_name(args.port)}: {read} read state {said}: the controller has not confirmed the tube off")
     _say(TUBE_WARNING)
     return 3
 
@@ -856,7 +902,7 @@ def _probe_waits(guard, result, args, state, found) -> int:
     except KeyboardInterrupt as exc:
         name = exc.name if isinstance(exc, StopSignal) else "SIGINT"
         _say(
-            f"{args.port}: stopped by {name} while waiting out the controller's power-on checks; its last STS read "
+            f"{shown_name(args.port)}: stopped by {name} while waiting out the controller's power-on checks; its last STS read "
             f"state {state.said}: the controller has not confirmed the tube off"
         )
         _say(TUBE_WARNING)
@@ -1024,7 +1070,7 @@ def _one_fault(exc, src):
         off = getattr(fault, "switch_off", None)
         # a fault whose own switch-off was not confirmed: its cause alone, the switch-off's error
         # says the rest in full (the fault's "could not be confirmed" said it twice)
-        said = f"{off.port}: {off.cause}" if off is not None and not off.confirmed else str(fault)
+        said = f"{shown_name(off.port)}: {off.cause}" if off is not None and not off.confirmed else str(fault)
         return f"{said}; switching X-rays off: {str(exc).removeprefix(port)}"
     return exc
 
@@ -1093,7 +1139,9 @@ def _source_error_code(exc, src, args) -> int:
         # even when this process never opened the port: the guardian did)
         state = getattr(exc, "tube_state", None)
         if getattr(exc, "off_failed", None) is None and state is not None and state.confirms_off:
-            _say(f"{src.port}: switched off by the X-ray guardian: tube off (confirmed by STS: {state.name})")
+            _say(
+                f"{shown_name(src.port)}: switched off by the X-ray guardian: tube off (confirmed by STS: {state.name})"
+            )
             return 1
         _tube_warning(src)
         return 3
@@ -1114,7 +1162,7 @@ def _source_error_code(exc, src, args) -> int:
         # sent XOF (one STS late), or an `off` whose attempts ran out before close()'s last one
         # was confirmed (review s38b): the tube's state is the last line, as the exit rule reads it
         how = "X-rays off after all (a last XOF as the port closed): " if after_all else ""
-        _say(f"{src.port}: {how}tube off (confirmed by STS: {state.name})")
+        _say(f"{shown_name(src.port)}: {how}tube off (confirmed by STS: {state.name})")
     return 1
 
 
@@ -1142,9 +1190,9 @@ def _off_line(off, after: str = "") -> str:
     confirmed by STS: STANDBY"; the line said the switch-off twice, s43rr2) and the controller's
     error code; or that it was not confirmed, and ``after``: what a later try found."""
     if off.confirmed:
-        line = f"{off.port}: {off.cause}; X-rays switched off, confirmed by STS: {off.state.name}"
+        line = f"{shown_name(off.port)}: {off.cause}; X-rays switched off, confirmed by STS: {off.state.name}"
     else:
-        line = f"{off.port}: {off.cause}; switching X-rays off could not be confirmed{after}"
+        line = f"{shown_name(off.port)}: {off.cause}; switching X-rays off could not be confirmed{after}"
     return line + (f"; controller error code {off.error_code}" if off.error_code else "")
 
 
@@ -1226,7 +1274,7 @@ def _hold_beam(src, args, reading) -> None:
 
     start, end = time.time(), time.monotonic() + args.hold
     print(
-        f"{args.port}: X-rays ON at {reading['set_voltage_kv']} kV {reading['set_current_ua']} uA (measured "
+        f"{shown_name(args.port)}: X-rays ON at {reading['set_voltage_kv']} kV {reading['set_current_ua']} uA (measured "
         f"{reading['voltage_kv']:g} kV {reading['current_ua']:g} uA) until "
         f"{time.strftime('%H:%M:%S', time.localtime(start + args.hold))} ({args.hold:g} s); Ctrl-C switches them off",
         flush=True,
@@ -1237,7 +1285,7 @@ def _hold_beam(src, args, reading) -> None:
 
         # at least one step: a hold under half a second had a bar of 0 s, which tqdm drew as a
         # bare "0s" that never moved (no countdown)
-        bar = tqdm(total=max(1, round(args.hold)), desc=f"X-rays on ({args.port})", unit="s", leave=False)
+        bar = tqdm(total=max(1, round(args.hold)), desc=f"X-rays on ({shown_name(args.port)})", unit="s", leave=False)
     try:
         while (left := end - time.monotonic()) > 0:
             time.sleep(min(SourceSettings.poll_s, left))
@@ -1259,7 +1307,7 @@ def _source_status(src, args) -> int | None:
     state = src.status()
     switch = src.switch_at_connect
     print(
-        f"{args.port}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.said}, "
+        f"{shown_name(args.port)}: dialect {src.dialect.name} at {src.baudrate} baud, state {state.said}, "
         f"measured {kv:g} kV {ua:g} uA, interlock {'closed' if src.interlock_closed() else 'OPEN'}"
         f"{', operate switch ' + switch if switch else ''}"
     )
@@ -1268,18 +1316,20 @@ def _source_status(src, args) -> int | None:
         # (B's AGING and its ambiguous ERROR included) cannot be switched off from here
         if not state.confirms_off:
             _say(
-                f"{args.port}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
+                f"{shown_name(args.port)}: X-rays {'are' if state.emitting else 'may be'} on (state {state.name}) and the "
                 f"operate switch is {switch}: radiokit cannot switch them off (remote control needs REMOTE)"
             )
             _tube_warning(src)
             return 3
-        print(f"{args.port}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE")
+        print(
+            f"{shown_name(args.port)}: the operate switch is {switch}: `source on`, `off` and `warm-up` need it on REMOTE"
+        )
         return 0
     if state.emitting:
         # the driver lets no link go with X-rays on (only `on` detaches): close() switched them
         # off after the line above said XRAY_ON, and the operator's last line was no longer true
         print(
-            f"{args.port}: X-rays were on: switched off (confirmed: state {src.off().name}); "
+            f"{shown_name(args.port)}: X-rays were on: switched off (confirmed: state {src.off().name}); "
             "no radiokit command leaves them on (other software, a crash, a power cut or a hand at the controller did)"
         )
     elif state.confirms_off and src.may_be_on:
@@ -1287,7 +1337,7 @@ def _source_status(src, args) -> int | None:
         # does not clear what connect saw (nothing confirmed a switch-off), so switch off and
         # confirm, and say so; it ended on the warning, exit 3, though close() then confirmed off
         print(
-            f"{args.port}: X-rays read on at connect, off now (state {state.name}): XOF sent and "
+            f"{shown_name(args.port)}: X-rays read on at connect, off now (state {state.name}): XOF sent and "
             f"confirmed (state {src.off().name})"
         )
     elif not state.confirms_off and (kv > 0 or ua > 0):
@@ -1296,15 +1346,15 @@ def _source_status(src, args) -> int | None:
         # not confirmed, off() raises and the command ends on the warning (exit 3). With
         # nothing measured it is the pre-heating the notes name, and only reported
         print(
-            f"{args.port}: state {state.name} does not show X-rays off and a beam is measured: switching off",
+            f"{shown_name(args.port)}: state {state.name} does not show X-rays off and a beam is measured: switching off",
             flush=True,
         )
-        print(f"{args.port}: switched off (confirmed: state {src.off().name})")
+        print(f"{shown_name(args.port)}: switched off (confirmed: state {src.off().name})")
     elif not state.confirms_off:
         # nothing measured, but B's ERROR is also how B refuses a query: the controller has
         # not confirmed the tube off, and the exit rule says so (README: exit codes)
         _say(
-            f"{args.port}: state {state.name} does not show X-rays off (B's STS ERROR: pre-heating, or a "
+            f"{shown_name(args.port)}: state {state.name} does not show X-rays off (B's STS ERROR: pre-heating, or a "
             "refused query); nothing is measured, but the controller has not confirmed the tube off"
         )
     return None
@@ -1330,12 +1380,12 @@ def _source_action(src, args, guard=None) -> int:
             seconds = src.warm_up(timeout_s=args.timeout, progress=not args.quiet and sys.stderr.isatty(), kv=kv, ua=ua)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
-        print(f"{args.port}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
+        print(f"{shown_name(args.port)}: {_warm_up_line(src, args, seconds)}, state {src.status().name}")
     elif args.action == "on":  # --kv, --ua and --for: given and within bounds (checked in _source)
         # said before XON: killed in the ramp (kill -9, no handler runs) this command has no later
         # line; the guardian's XOF is what ends the beam then
         src.before_xon = lambda kv, ua: print(
-            f"{args.port}: switching X-rays ON at {kv} kV {ua} uA for {args.hold:g} s: switched off at its end, "
+            f"{shown_name(args.port)}: switching X-rays ON at {kv} kV {ua} uA for {args.hold:g} s: switched off at its end, "
             "or at Ctrl-C",
             flush=True,
         )
@@ -1345,10 +1395,10 @@ def _source_action(src, args, guard=None) -> int:
             _hold_beam(src, args, r)
         except DeviceError as exc:
             raise _failed_on(exc, src, args) from exc
-        print(f"{args.port}: {args.hold:g} s over: tube off (confirmed by STS: {src.off().name})")
+        print(f"{shown_name(args.port)}: {args.hold:g} s over: tube off (confirmed by STS: {src.off().name})")
     else:
         src.off()
-        print(f"{args.port}: X-rays off (confirmed: state {src.status().name})")
+        print(f"{shown_name(args.port)}: X-rays off (confirmed: state {src.status().name})")
     if not src.tube_confirmed_off:  # the exit rule (README: exit codes)
         _tube_warning(src)
         return 3

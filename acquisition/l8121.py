@@ -288,6 +288,97 @@ RATINGS = Ratings()
 REPLY_TIMEOUT_MAX_S = 10.0
 
 
+#: The most switch-off attempts a configuration may ask for (``off_attempts``, default 3). Each
+#: is an XOF and an STS, each a reply's wait: 10 at the longest reply wait (10 s) are 200 s of
+#: "maybe on" before the operator is told to switch off at the controller; 10**9 never told.
+OFF_ATTEMPTS_MAX = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class TimeLimit:
+    """The bound of one time of :class:`SourceConfig`: at most ``max_s``, ``zero`` whether 0 is
+    a value (``xon_start_s = 0``: at once) or a time that must pass, and ``why``, said with a
+    refusal."""
+
+    max_s: float
+    why: str
+    zero: bool = False
+
+
+#: Every time of :class:`SourceConfig`, bounded in this one place (its ``__post_init__``, the
+#: driver's own time-out arguments, the command line's time-outs and a protocol's ``[source]``
+#: all ask :func:`checked_time`). Why bounds at all: 1e300 passed ``finite``, and a wait that
+#: long is a wait for ever -- with X-rays on, or about to be, for most of these.
+TIME_LIMITS: dict[str, TimeLimit] = {
+    name: TimeLimit(
+        REPLY_TIMEOUT_MAX_S, "a controller silent that long has failed, L8121.md; each wait of a switch-off is one"
+    )
+    for name in ("timeout_s", "probe_timeout_s")
+} | {
+    # L8121.md gives the warm-up no duration, only schedules by the time the tube stood idle
+    # (B's DAG: 8 h, a month, three months). The default, 30 min, is three times the dry run's
+    # 10 min estimate; four times that still covers a schedule far longer than planned, and past
+    # it a "warm-up" that never reports done is a fault -- while it emits. An extra zero typed
+    # (18000) must not become five hours of X-rays nobody watches.
+    "warmup_timeout_s": TimeLimit(
+        7200.0, "a warm-up still running after 2 h, emitting all along, has failed: see to the controller"
+    ),
+    # the power-on checks (A's STS 6, B's ERROR, "not ready" with the door shut) and B's SRB BUSY:
+    # queries only, but the operator's command waits on them; L8121.md gives no duration, and a
+    # unit still checking itself after ten minutes (twenty times the default) needs a person
+    "ready_timeout_s": TimeLimit(
+        600.0, "a controller still in its power-on checks after 10 min needs looking at, not waiting for"
+    ),
+    # L8121.md: the measured values ramp to the set ones "over a few seconds" after XON; the
+    # beam is on for the whole wait (default 15 s)
+    "stable_timeout_s": TimeLimit(60.0, "the beam ramps in a few seconds, L8121.md, and is on for the whole wait"),
+    # the start command was sent: X-rays may be on while the warm-up is waited for to show (default 5 s)
+    "warmup_start_s": TimeLimit(60.0, "the warm-up's start command was sent: X-rays may be on for the whole wait"),
+    # XON was sent and echoed: standby is let pass this long (default 1 s); 0: at once
+    "xon_start_s": TimeLimit(60.0, "XON was sent: X-rays may be on for the whole wait", zero=True),
+    # a switch-off's attempts spread over this window before the operator is told (default 3 s):
+    # a supply ramps down in seconds; past a minute of "maybe on" the operator must hear of it
+    "off_confirm_s": TimeLimit(
+        60.0, "a switch-off not confirmed is told only after this window, the tube maybe on", zero=True
+    ),
+    # the driver's polls in its warm-up and ramp waits, each the reading that sees an interlock
+    # opened or an overload (the L8121-02 driver's cycle reads them about every 0.25 s; default 0.2 s)
+    "poll_s": TimeLimit(5.0, "an interlock opened or an overload goes unseen that long, X-rays maybe on"),
+    "error_poll_s": TimeLimit(
+        ERROR_POLL_MAX_S,
+        "a controller fault unnoticed that long with the beam on; a unit without SER is error_query = false",
+    ),
+    # L8121.md: ~0.05 s between commands; every exchange waits it, a switch-off's XOF too
+    "min_interval_s": TimeLimit(
+        1.0,
+        "the controller needs ~0.05 s between commands, and each switch-off waits this long before its XOF",
+        zero=True,
+    ),
+}
+
+
+def time_refusal(name: str, value) -> str | None:
+    """What is wrong with ``value`` as the time ``name`` of :class:`SourceConfig` (a key of
+    :data:`TIME_LIMITS`), or None: not a number, not finite, below 0 (or 0 where that is not a
+    time), or past its bound. Said after the key (or the command line's option) and the value."""
+    limit = TIME_LIMITS[name]
+    if not is_number(value) or not math.isfinite(value) or value < 0 or (value == 0 and not limit.zero):
+        return f"expected a finite number of seconds {'>= 0' if limit.zero else 'above 0'}"
+    if value > limit.max_s:
+        return f"at most {limit.max_s:g} s ({limit.why})"
+    return None
+
+
+def checked_time(name: str, value) -> float:
+    """``value`` when :func:`time_refusal` finds nothing wrong with it as the time ``name``; else
+    :class:`SettingRefused` naming the key, the value and the problem."""
+    said = time_refusal(name, value)
+    if said is not None:
+        unit = " s" if is_number(value) and math.isfinite(value) and value > 0 else ""
+        raise SettingRefused(f"{name} = {shown(value)}{unit}: {said}")
+    return value if type(value) in (int, float) else float(value)  # a numpy number is not TOML's
+
+
 @dataclasses.dataclass
 class SourceConfig:
     """Dialect, link, ratings, tolerances and timing of one L8121 (defaults: ``L8121.md``).
@@ -403,20 +494,11 @@ class SourceConfig:
             "ua_min",
             "ua_max",
             "watts_max",
-            "stable_timeout_s",
-            "poll_s",
-            "warmup_timeout_s",
-            "warmup_start_s",
-            "xon_start_s",
-            "ready_timeout_s",
-            "off_confirm_s",
             "beam_drop_fraction",
-            "error_poll_s",
         ):
             setattr(self, name, _finite(getattr(self, name), name))
-        for name in ("min_interval_s", "timeout_s", "voltage_scale", "probe_timeout_s"):
-            if getattr(self, name) is not None:
-                setattr(self, name, _finite(getattr(self, name), name))
+        if self.voltage_scale is not None:
+            self.voltage_scale = _finite(self.voltage_scale, "voltage_scale")
         if self.voltage_scale == 0:
             raise SettingRefused("voltage_scale must be > 0")
         self._check_beam_drop()
@@ -431,6 +513,11 @@ class SourceConfig:
         # a true integer: int() took "3" as 3 and 2.5 as 2 attempts (is_integer refuses bools too)
         if not is_integer(self.off_attempts) or self.off_attempts < 1:
             raise SettingRefused(f"off_attempts must be a whole number >= 1, got {self.off_attempts!r}")
+        if self.off_attempts > OFF_ATTEMPTS_MAX:
+            raise SettingRefused(
+                f"off_attempts = {self.off_attempts}: at most {OFF_ATTEMPTS_MAX} (each waits up to two replies, XOF's "
+                "and STS's, before the operator hears that the switch-off failed)"
+            )
         self.off_attempts = int(self.off_attempts)  # a numpy integer is not TOML's
         self.tolerance_kv(100.0), self.tolerance_ua(100.0)  # validates both
         self._check_given_tolerances()
@@ -458,35 +545,12 @@ class SourceConfig:
             )
 
     def _check_timeouts(self) -> None:
-        """No time-out zero (the dialect's where None), none past ``REPLY_TIMEOUT_MAX_S``."""
-        # a zero warm-up or stable time-out would switch the tube on only to switch it off again
-        for name in (
-            "timeout_s",
-            "probe_timeout_s",
-            "poll_s",
-            "warmup_timeout_s",
-            "warmup_start_s",
-            "stable_timeout_s",
-            "ready_timeout_s",
-        ):
-            if getattr(self, name) == 0:  # timeout_s None: the dialect's
-                raise SettingRefused(f"{name} must be > 0")
-        if not 0 < self.error_poll_s <= ERROR_POLL_MAX_S:
-            raise SettingRefused(
-                f"error_poll_s = {shown(self.error_poll_s)}: "
-                + (
-                    f"at most {ERROR_POLL_MAX_S:g} s (a controller fault unnoticed that long with the beam on; "
-                    "a unit without SER is error_query = false)"
-                    if self.error_poll_s > 0
-                    else "expected a number of seconds above 0 (how often SER is read with the beam on)"
-                )
-            )
-        for name in ("timeout_s", "probe_timeout_s"):  # a reply's wait, whatever path set it
-            if getattr(self, name) is not None and getattr(self, name) > REPLY_TIMEOUT_MAX_S:
-                raise SettingRefused(
-                    f"{name} = {shown(getattr(self, name))} s: at most {REPLY_TIMEOUT_MAX_S:g} s "
-                    "(a controller silent that long has failed, L8121.md; each wait of a switch-off is one)"
-                )
+        """Every time within :data:`TIME_LIMITS` (None: the dialect's). Zero is refused where it
+        is no time at all: a zero warm-up or stable time-out would switch the tube on only to
+        switch it off again."""
+        for name in TIME_LIMITS:
+            if getattr(self, name) is not None:
+                setattr(self, name, checked_time(name, getattr(self, name)))
 
     def _check_ceiling(self) -> None:
         r = RATINGS
@@ -2464,7 +2528,11 @@ class L8121:
         DeviceError
             Still checking after ``timeout_s`` (one line naming the state and the setting).
         """
-        limit = self.config.ready_timeout_s if timeout_s is None else float(timeout_s)
+        limit = self.config.ready_timeout_s if timeout_s is None else timeout_s
+        said = time_refusal("ready_timeout_s", limit)  # the configuration's bound: queries only, but a wait
+        if said is not None:
+            raise ValueError(f"{self.port}: timeout_s = {shown(limit)} (ready_timeout_s): {said}; nothing sent")
+        limit = float(limit)
         t0 = time.monotonic()
         state = self.status()
         told = False
@@ -2823,12 +2891,13 @@ class L8121:
             Overload (not reset automatically), the interlock is open, or the controller reports
             an error code before the start command.
         """
-        timeout_s = self.config.warmup_timeout_s if timeout_s is None else float(timeout_s)
-        if not (math.isfinite(timeout_s) and timeout_s > 0):  # checked before the warm-up emits
+        timeout_s = self.config.warmup_timeout_s if timeout_s is None else timeout_s
+        said = time_refusal("warmup_timeout_s", timeout_s)  # the configuration's bound, before the warm-up emits
+        if said is not None:
             raise ValueError(
-                f"{self.port}: warm-up timeout_s must be a positive finite number of seconds, got {timeout_s!r}; "
-                f"nothing sent"
+                f"{self.port}: warm-up timeout_s = {shown(timeout_s)} (warmup_timeout_s): {said}; nothing sent"
             )
+        timeout_s = float(timeout_s)
         if (kv is None) != (ua is None):
             raise ValueError(f"{self.port}: warm_up() takes kv and ua together (or neither); nothing sent")
         wanted = None if kv is None else self.validate(kv, ua)  # checked before anything is sent

@@ -16,7 +16,13 @@ import numbers
 import os
 import sys
 
-__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar", "shown", "toml_loads"]
+from radiokit._names import shown as shown_name
+
+__all__ = ["image_hint", "is_integer", "is_number", "refuse_masked", "scalar", "shown", "shown_name", "toml_loads"]
+
+#: ``shown_name(name)``: a file's name (or any text naming one) as a message prints it --
+#: :func:`radiokit._names.shown`, here for the simulator and the acquisition code, which import
+#: no private module of the core: :func:`shown` prints the numbers a message refuses, this the names.
 
 
 def is_number(value) -> bool:

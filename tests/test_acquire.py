@@ -1096,7 +1096,9 @@ def test_cli_a_file_not_to_resume_from_is_refused_exit_2_in_the_run_as_in_the_dr
     [
         # with --sim a protocol's bits are the virtual panel's 12 (check_sim): the file differs
         ("detector", "bits", 14, "[detector] bits = 12 (14 in the file)"),
-        ("detector", "pixel_size_mm", 0.1, "[detector] pixel_size_mm = 0.1 (not set in the file)"),
+        # (the virtual panel's own pitch, 0.05 mm times the scene's binning 4: another is refused by
+        # check_sim before the file is looked at)
+        ("detector", "pixel_size_mm", 0.2, "[detector] pixel_size_mm = 0.2 (not set in the file)"),
         ("source", "focus", 1, "[source] focus = 1 (not set in the file)"),
         ("source", "dialect", "B", "[source] dialect = 'B' ('A' in the file)"),
         ("sim", "seed", 7, "[sim] seed = 7 (0 in the file)"),
@@ -1151,7 +1153,7 @@ def test_cli_resume_refuses_a_protocol_edited_in_a_setting_that_shapes_the_data_
         ("detector", "discard_first", "false", "[detector] discard_first = 'false': expected true or false"),
         ("detector", "folder", 5, "[detector] folder = 5: expected a string"),
         ("sim", "scene", 5, "[sim] scene = 5: expected a string"),
-        ("source", "min_interval_s", 100, "[source] min_interval_s = 100: expected at most 1 s"),
+        ("source", "min_interval_s", 100, "[source] min_interval_s = 100 s: at most 1 s"),
         # within the ratings' bound (1000 is refused there), too wide at this protocol's 250 uA
         ("source", "ua_tolerance", 200, "[source] ua_tolerance = 200: 200 µA at 250 µA"),
     ],
@@ -2285,9 +2287,13 @@ def test_cli_resume_takes_a_file_of_the_previous_release_and_settings_written_di
     path = tmp_path / "protocol.toml"
     for dialect in ("A", "a", "auto"):
         now = protocol(tmp_path, scene_toml, dialect=dialect)
-        now.detector.pixel_size_mm = 0.05
         path.write_text(now.to_toml())
         assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
+    # the pitch unset is the 0.05 mm the run assumes (with --sim a pitch stated must be the
+    # virtual panel's, here 0.2 mm: check_sim, tests/test_acquire_hostile_protocols.py)
+    from acquisition.protocols.compression_series import _same_setting
+
+    assert _same_setting("detector", "pixel_size_mm", None, 0.05)
     now = protocol(tmp_path, scene_toml, dialect="A")
     now.sim.seed = 7  # a setting that shapes the data is still compared
     path.write_text(now.to_toml())

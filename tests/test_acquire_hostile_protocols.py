@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 
 import pytest
 import tomli_w
@@ -196,3 +197,377 @@ def test_the_python_api_refuses_a_detector_that_is_not_the_virtual_panel_before_
     with pytest.raises(ProtocolError, match=r"\[detector\] bits = 8"):
         run(p, sim=True, progress=False)
     assert model.commands == [] and list((tmp_path / "out").iterdir()) == []
+
+
+# -- bounds: counts and times past any use of them (session 54) ----------------------------------
+
+#: Every per-batch count of a protocol: each is that many frames (or discarded read-outs) in one
+#: batch, the beam on for a flat's or a step's.
+BATCH_COUNTS = [
+    ("series", "frames_per_step"),
+    ("series", "darks"),
+    ("series", "flats"),
+    ("detector", "discard_after_change"),
+]
+
+
+@pytest.mark.parametrize("section, key", BATCH_COUNTS, ids=[k for _, k in BATCH_COUNTS])
+@pytest.mark.parametrize("over", ["just over", "10**9"])
+def test_a_batch_count_beyond_the_ceiling_is_refused_before_any_x_ray_command(
+    tmp_path, scene_file, emulator, capsys, section, key, over
+):
+    """``frames_per_step = 10**9`` passed (an extra zero or three: days of beam, terabytes); the
+    run warned of the disk only after connecting, and then warmed the tube up."""
+    from acquisition.protocols.compression_series import FRAMES_PER_BATCH_MAX
+
+    value = FRAMES_PER_BATCH_MAX + 1 if over == "just over" else 10**9
+    line = refused(tmp_path, scene_file, emulator, capsys, setting(section, key, value), f"[{section}] {key} = {value}")
+    assert f"{FRAMES_PER_BATCH_MAX}" in line, line  # says the ceiling
+
+
+def test_every_batch_count_at_the_ceiling_is_a_protocol(tmp_path, scene_file):
+    from acquisition.protocols.compression_series import FRAMES_PER_BATCH_MAX, load_protocol
+
+    def edit(d):
+        for section, key in BATCH_COUNTS:
+            d[section][key] = FRAMES_PER_BATCH_MAX
+
+    p = load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit))
+    assert p.series.frames_per_step == FRAMES_PER_BATCH_MAX
+
+
+def _time_keys():
+    from acquisition.l8121 import TIME_LIMITS
+
+    return sorted(TIME_LIMITS)
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [(k, v) for k in ("warmup_timeout_s", "ready_timeout_s") for v in (1e300, math.inf, math.nan, -1.0)],
+)
+def test_a_warm_up_or_ready_wait_that_is_no_finite_positive_time_is_refused(
+    tmp_path, scene_file, emulator, capsys, key, value
+):
+    refused(tmp_path, scene_file, emulator, capsys, setting("source", key, value), f"[source] {key} = ")
+
+
+@pytest.mark.parametrize("key", _time_keys())
+def test_every_time_of_the_source_just_past_its_bound_is_refused_naming_the_key(
+    tmp_path, scene_file, emulator, capsys, key
+):
+    """One table (``acquisition.l8121.TIME_LIMITS``) bounds every time of the source's
+    configuration; a protocol's ``[source]`` gives each, and each is refused just past its bound
+    with the digits that set it apart from it."""
+    from acquisition.l8121 import TIME_LIMITS
+    from radiokit.checks import shown
+
+    bound = TIME_LIMITS[key].max_s
+    value = math.nextafter(bound, math.inf)
+    line = refused(tmp_path, scene_file, emulator, capsys, setting("source", key, value), f"[source] {key}")
+    assert f"{shown(value)} s: at most {bound:g} s" in line, line
+
+
+@pytest.mark.parametrize("key", _time_keys())
+def test_every_time_of_the_source_at_its_bound_is_taken(key):
+    from acquisition.l8121 import TIME_LIMITS, SourceConfig
+
+    cfg = SourceConfig(**{key: TIME_LIMITS[key].max_s})
+    assert getattr(cfg, key) == TIME_LIMITS[key].max_s
+
+
+@pytest.mark.parametrize("key", ["warmup_timeout_s", "ready_timeout_s"])
+def test_the_driver_s_own_time_out_arguments_have_the_configuration_s_bounds(key):
+    """``warm_up(timeout_s=...)`` and ``settled_status(timeout_s=...)`` are the same waits as the
+    configuration's keys: refused past the same bound, before anything is sent."""
+    from acquisition.l8121 import L8121, TIME_LIMITS
+
+    src = L8121("loop://", connect=False)
+    call = src.warm_up if key == "warmup_timeout_s" else src.settled_status
+    with pytest.raises(ValueError, match=key):
+        call(timeout_s=math.nextafter(TIME_LIMITS[key].max_s, math.inf))
+
+
+@pytest.mark.parametrize(
+    "action, option, key",
+    [("warm-up", "--timeout", "warmup_timeout_s"), ("on", "--ready-timeout", "ready_timeout_s")],
+)
+@pytest.mark.parametrize("over", ["just over", "1e300"])
+def test_cli_source_time_outs_past_the_configuration_s_bound_send_nothing(capsys, action, option, key, over):
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from acquisition.l8121 import TIME_LIMITS
+    from radiokit.checks import shown
+    from radiokit.cli import main
+
+    bound = TIME_LIMITS[key].max_s
+    value = math.nextafter(bound, math.inf) if over == "just over" else 1e300
+    model = L8121Model(dialect="A", warmed_up=True)
+    extra = ["--kv", "60", "--ua", "250", "--for", "1"] if action == "on" else []
+    with PtyServer(model) as server:
+        code = main(["acquire", "source", action, "--port", server.url, "--dialect", "A", *extra, option, repr(value)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith(f"error: {option} {shown(value)}: at most {bound:g} s"), err
+    assert err[0].endswith("nothing was sent"), err
+    assert model.commands == [] and not model.xray_on
+
+
+# -- the virtual panel's pitch ---------------------------------------------------------------------
+
+#: the C7942's 50 µm pitch (C7942.md) at the scene's binning
+PITCH_MM = 0.05 * BINNING
+
+
+def test_a_pitch_that_is_not_the_virtual_panel_s_is_refused_before_any_x_ray_command(
+    tmp_path, scene_file, emulator, capsys
+):
+    """``[detector] pixel_size_mm`` was overwritten by the simulated panel's pitch without a word:
+    a protocol that said 0.05 mm ran, and its file said 0.2 (every length measured in it 4x)."""
+    line = refused(
+        tmp_path,
+        scene_file,
+        emulator,
+        capsys,
+        setting("detector", "pixel_size_mm", 0.05),
+        "[detector] pixel_size_mm = 0.05",
+    )
+    assert f"{PITCH_MM:g} mm" in line, line  # says the virtual panel's
+
+
+@pytest.mark.parametrize("binning", [None, 1, 2])
+def test_the_virtual_panel_s_own_pitch_is_taken(tmp_path, scene_file, binning):
+    """At the scene's binning, or at ``[sim] binning``'s: 0.05 mm times it."""
+    from acquisition.protocols.compression_series import check_sim, load_protocol
+
+    def edit(d):
+        d["detector"]["pixel_size_mm"] = 0.05 * (binning or BINNING)
+        if binning:
+            d["sim"]["binning"] = binning
+
+    check_sim(load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit)))
+
+
+# -- names as names print ------------------------------------------------------------------------
+
+
+def _hostile_name(tmp_path, name="pro\x1b]2;x\x07to\ncol.toml"):
+    """A protocol file named with a terminal escape and a newline, holding ``data``."""
+    return tmp_path / name
+
+
+@pytest.mark.parametrize(
+    "edit, flags",
+    [
+        (setting("series", "frames_per_step", 0), []),  # refused as it loads
+        (setting("detector", "bits", 8), []),  # refused by the virtual bench's check
+        (lambda d: None, ["--port", "/dev/null"]),  # an option only source commands take
+        (lambda d: None, ["-o", "out\x1b[2J.tif"]),  # not an HDF5 name
+    ],
+    ids=["load", "check", "option", "output"],
+)
+def test_a_hostile_file_name_is_printed_as_names_print(tmp_path, scene_file, emulator, capsys, edit, flags):
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    model, server = emulator
+    path = protocol(tmp_path, scene_file, server.url, edit)
+    hostile = path.rename(_hostile_name(tmp_path))
+    code = main(["acquire", str(hostile), "--sim", "-q", *flags])
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code == 2 and "\x1b" not in text and "\x07" not in text, text
+    lines = text.strip().splitlines()
+    assert len(lines) == 1, lines
+    named = shown("out\x1b[2J.tif") if flags[:1] == ["-o"] else shown(hostile)
+    assert named in lines[0], lines
+    assert model.commands == []
+
+
+def test_an_existing_experiment_file_with_a_hostile_name_is_printed_as_names_print(
+    tmp_path, scene_file, emulator, capsys
+):
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    model, server = emulator
+    out = tmp_path / "out" / "se\x1b[2Jries.h5"
+
+    def edit(d):
+        d["output"] = str(out)
+
+    path = protocol(tmp_path, scene_file, server.url, edit)
+    out.write_bytes(b"")
+    code = main(["acquire", str(path), "--sim", "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "\x1b" not in err[0], err
+    assert f"error: {shown(out)}: exists" in err[0], err
+    assert model.commands == []
+
+
+# -- the exposure a protocol did not state ---------------------------------------------------------
+
+
+class _Stamped:
+    """A stream that notes, for each line written, the X-ray commands the emulator had received
+    by then: what "before any X-ray command" means, observed (the output itself is kept)."""
+
+    def __init__(self, model):
+        self.model, self.lines, self._part = model, [], ""
+
+    def write(self, text):
+        self._part += text
+        while "\n" in self._part:
+            line, self._part = self._part.split("\n", 1)
+            sent = [c for c in list(self.model.commands) if c.split()[0] in XRAY_COMMANDS]
+            self.lines.append((line, sent))
+        return len(text)
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return False
+
+
+def _without(stated):
+    def edit(d):
+        for key in ("voltage_kv", "current_ua"):
+            if key not in stated:
+                del d["source"][key]
+
+    return edit
+
+
+def _says_the_defaults(line, stated):
+    from acquisition.protocols.compression_series import SourceSettings
+
+    for key, unit in (("voltage_kv", "kV"), ("current_ua", "uA")):
+        assert (f"{key} = {getattr(SourceSettings, key):g} {unit}" in line) == (key not in stated), line
+
+
+def test_an_exposure_the_protocol_does_not_state_is_said_before_any_x_ray_command(
+    tmp_path, scene_file, emulator, monkeypatch
+):
+    """A protocol without ``[source] voltage_kv`` and ``current_ua`` runs at the paper's 60 kV and
+    250 µA (taken, not refused: protocols may rely on it), and the run says so once, before it
+    sends any X-ray command (observed: the emulator's commands when the line was written)."""
+    import sys
+
+    from radiokit.cli import main
+
+    model, server = emulator
+    path = protocol(tmp_path, scene_file, server.url, _without(()))
+    stream = _Stamped(model)
+    monkeypatch.setattr(sys, "stderr", stream)
+    assert main(["acquire", str(path), "--sim", "-q"]) == 0, stream.lines
+    said = [(line, sent) for line, sent in stream.lines if "not stated" in line]
+    assert len(said) == 1, stream.lines
+    line, sent = said[0]
+    assert sent == [] and str(path) in line, said
+    _says_the_defaults(line, ())
+    assert any(c.split()[0] in XRAY_COMMANDS for c in model.commands)  # the run did switch X-rays on
+
+
+@pytest.mark.parametrize("stated", [("voltage_kv",), ("current_ua",)], ids=["kV only", "uA only"])
+def test_the_dry_run_names_only_the_exposure_the_protocol_left_out(tmp_path, scene_file, emulator, capsys, stated):
+    from radiokit.cli import main
+
+    model, server = emulator
+    path = protocol(tmp_path, scene_file, server.url, _without(stated))
+    assert main(["acquire", str(path), "--sim", "--dry-run"]) == 0
+    said = [ln for ln in capsys.readouterr().err.splitlines() if "not stated" in ln]
+    assert len(said) == 1 and str(path) in said[0], said
+    _says_the_defaults(said[0], stated)
+    assert model.commands == []
+
+
+def test_an_exposure_the_protocol_states_is_not_announced(tmp_path, scene_file, emulator, capsys):
+    from radiokit.cli import main
+
+    model, server = emulator
+    path = protocol(tmp_path, scene_file, server.url, lambda d: None)
+    assert main(["acquire", str(path), "--sim", "--dry-run"]) == 0
+    captured = capsys.readouterr()
+    assert "not stated" not in captured.out + captured.err
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "plain.toml",
+        "with space's.toml",
+        "esc\x1b[2J.toml",
+        "new\nline.toml",
+        "back\\slash.toml",
+        "bidi\u202e.toml",
+        "c1\x85.toml",
+    ],
+)
+def test_the_command_that_completes_a_series_reads_back_through_a_shell_and_prints_no_control(name):
+    """The command offered to complete a stopped series names the protocol file: quoted so that
+    bash reads it back as the name, and with no character the terminal acts on."""
+    import argparse
+    import shutil
+    import subprocess
+    import unicodedata
+
+    from acquisition.cli import resume_command
+
+    args = argparse.Namespace(protocol=name, sim=True, output=None, dialect=None)
+    line = resume_command(args)
+    assert not any(unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp") for c in line), line
+    bash = shutil.which("bash")
+    # (a UTF-8 locale, as a terminal's: bash writes $'\u0085' in the locale's encoding)
+    env = {**os.environ, "LC_ALL": "C.UTF-8"}
+    words = subprocess.run(
+        [bash, "-c", f'set -- {line}; printf "%s\\0" "$@"'], capture_output=True, check=True, env=env
+    ).stdout.split(b"\0")[:-1]
+    assert [w.decode() for w in words] == ["radiokit", "acquire", name, "--sim", "--resume"]
+
+
+def test_switch_off_attempts_past_their_bound_are_refused_naming_the_key(tmp_path, scene_file, emulator, capsys):
+    """``off_attempts = 10**9``: a switch-off that is not confirmed would be retried for ever
+    before the operator heard of it, the tube maybe on."""
+    from acquisition.l8121 import OFF_ATTEMPTS_MAX, SourceConfig
+
+    assert SourceConfig(off_attempts=OFF_ATTEMPTS_MAX).off_attempts == OFF_ATTEMPTS_MAX
+    for value in (OFF_ATTEMPTS_MAX + 1, 10**9):
+        line = refused(tmp_path, scene_file, emulator, capsys, setting("source", "off_attempts", value), "[source]")
+        assert f"off_attempts = {value}: at most {OFF_ATTEMPTS_MAX}" in line, line
+
+
+@pytest.mark.parametrize("over", ["just over", "1e300"])
+def test_a_frame_wait_past_the_longest_beam_a_hung_run_may_keep_is_refused(
+    tmp_path, scene_file, emulator, capsys, over
+):
+    """``[detector] timeout_s`` is how long the run waits for each frame -- for a flat's and a
+    step's with X-rays on. 1e300 passed: a panel lost in a step kept the beam on for ever, the
+    beam monitor's polls feeding the guardian's watchdog all along."""
+    from acquisition.protocols.compression_series import WATCHDOG_MAX_S
+
+    value = math.nextafter(WATCHDOG_MAX_S, math.inf) if over == "just over" else 1e300
+
+    def edit(d):
+        d["detector"]["timeout_s"] = value
+
+    line = refused(tmp_path, scene_file, emulator, capsys, edit, "[detector] timeout_s")
+    assert f"at most {WATCHDOG_MAX_S:g} s" in line, line
+
+
+@pytest.mark.parametrize("action", ["status", "off"])
+def test_a_source_command_prints_a_hostile_port_name_as_names_print(tmp_path, capsys, action):
+    """``--port`` is a path the user typed (here a link to the emulator's pseudo-terminal, named
+    with a terminal escape): the command's own lines print it as names print."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    link = tmp_path / "tty\x1b[2J"
+    with PtyServer(model) as server:
+        link.symlink_to(server.url)
+        code = main(["acquire", "source", action, "--port", str(link), "--dialect", "A"])
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code == 0 and "\x1b" not in text, text
+    assert shown(link) in text, text

@@ -24,7 +24,7 @@ import time
 import pytest
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
-from acquisition.l8121 import L8121, SourceState
+from acquisition.l8121 import L8121, SourceConfig, SourceState
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 
@@ -120,13 +120,17 @@ def test_an_interrupt_before_the_first_byte_says_nothing_was_sent():
     controller received nothing, and the interrupt says so (``probe_sent`` False), so that the
     last line can say radiokit never reached the controller instead of a warning that it may be on."""
     model = L8121Model(dialect="B", warmed_up=True)
+    # a window wide enough for the interrupt on a loaded machine: 5 s of spacing, past the 1 s a
+    # configuration takes (TIME_LIMITS), so set after it is built -- the window, not a setting
+    config = SourceConfig(dialect="auto")
+    config.min_interval_s = 5.0
     with PtyServer(model) as server:
         old = signal.signal(signal.SIGINT, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt))
         timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
         timer.start()
         try:
             with pytest.raises(KeyboardInterrupt) as info:
-                L8121(server.url, dialect="auto", min_interval_s=5.0)  # the spacing: 5 s before STS
+                L8121(server.url, config=config)  # the spacing: 5 s before STS
         finally:
             timer.cancel()
             signal.signal(signal.SIGINT, old)

@@ -78,12 +78,13 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import tomli_w
 
 from acquisition.errors import DetectorTimeout, DeviceError
-from radiokit.checks import is_integer, is_number, shown, toml_loads
+from radiokit.checks import is_integer, is_number, shown, shown_name, toml_loads
 
 __all__ = [
     "Protocol",
@@ -215,8 +216,18 @@ class SimSettings:
     source_port: str = ""  # drive the emulator already serving here (tests), through the guardian
 
 
+#: The exposure a protocol's ``[source]`` may leave out: it then runs at :class:`SourceSettings`'
+#: defaults, the paper's 60 kV and 250 uA (taken, not refused: protocols written so rely on it),
+#: and ``radiokit acquire`` says so before anything is sent (:attr:`Protocol.unstated_exposure`).
+EXPOSURE_KEYS = ("voltage_kv", "current_ua")
+
+
 @dataclass
 class Protocol:
+    #: the keys of :data:`EXPOSURE_KEYS` the protocol's text left to the defaults
+    #: (:func:`load_protocol` sets it; not a setting: never written back, never compared)
+    unstated_exposure: ClassVar[tuple] = ()
+
     output: str = "experiment.h5"
     name: str = "compression-series"
     source: SourceSettings = field(default_factory=SourceSettings)
@@ -243,6 +254,7 @@ class Protocol:
         s = self.series
         if s.frames_per_step < 1:  # (darks and flats < 0: refused with every number above)
             raise ProtocolError(f"[series] frames_per_step = {s.frames_per_step!r}: expected at least 1")
+        self._check_batches()
         s.steps = _checked_steps(s.steps)
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
@@ -279,6 +291,27 @@ class Protocol:
             raise ProtocolError(
                 f"[source] voltage_kv = {shown(self.source.voltage_kv)} exceeds the panel's rating "
                 f"([detector] kvp_max = {shown(d.kvp_max)} kVp; the C7942SK-02 is rated 20-100 kVp)"
+            )
+
+    def _check_batches(self) -> None:
+        """Each batch's counts within :data:`FRAMES_PER_BATCH_MAX`, and its wait for a frame within
+        :data:`WATCHDOG_MAX_S`."""
+        for section, key in _BATCH_COUNTS:
+            n = getattr(getattr(self, section), key)
+            if n > FRAMES_PER_BATCH_MAX:
+                raise ProtocolError(
+                    f"[{section}] {key} = {n}: at most {FRAMES_PER_BATCH_MAX} frames in one batch (at the C7942's "
+                    "full resolution 83 min of read-out, for flats and steps of X-rays, and 100 GB; the paper "
+                    "took 5 a step)"
+                )
+        wait = self.detector.timeout_s
+        if wait > WATCHDOG_MAX_S:
+            # each frame of a flat's or a step's batch is waited for with X-rays on, the beam
+            # monitor's polls feeding the watchdog: a lost panel must end the beam no later than
+            # a hung run's would (1e300 kept it on for ever; the C7942's slowest frame is 10 s)
+            raise ProtocolError(
+                f"[detector] timeout_s = {shown(wait)} s: at most {WATCHDOG_MAX_S:g} s (each frame is waited "
+                "for with X-rays on; the longest a hung run may keep them on, as [source] watchdog_s)"
             )
 
     def settle_s(self, virtual: bool) -> float:
@@ -438,7 +471,7 @@ def _whole(value: float) -> int:
 def _check_source(s: SourceSettings) -> None:
     """Exposure, focus and limits of ``[source]`` against the protocol's limits and the ratings,
     before anything is sent: the dry run refuses what the run would refuse."""
-    from acquisition.l8121 import DIALECTS, SourceConfig
+    from acquisition.l8121 import DIALECTS, SourceConfig, checked_time
 
     cfg = _source_limits(s)
     if s.baudrate is not None:  # [source] baudrate is the protocol's own key, not a limit: the driver's check
@@ -457,12 +490,6 @@ def _check_source(s: SourceSettings) -> None:
         cfg.check_tolerances(_whole(s.voltage_kv), _whole(s.current_ua))
     except ValueError as exc:
         raise ProtocolError(f"[source] {_refusal(exc)}") from None
-    if cfg.min_interval_s is not None and cfg.min_interval_s > MIN_INTERVAL_MAX_S:
-        # L8121.md: ~50 ms between commands; every exchange waits it, a switch-off's XOF too
-        raise ProtocolError(
-            f"[source] min_interval_s = {shown(cfg.min_interval_s)}: expected at most {MIN_INTERVAL_MAX_S:g} s "
-            "(the controller needs ~0.05 s between commands, and each switch-off waits this long before its XOF)"
-        )
     modes = cfg.focus_modes
     if cfg.dialect in DIALECTS:  # "auto": checked at connect, once the dialect is known (_phase_warm_up)
         modes = DIALECTS[cfg.dialect].focus_modes(cfg)
@@ -470,8 +497,10 @@ def _check_source(s: SourceSettings) -> None:
         raise ProtocolError(f"[source] focus = {s.focus!r}: expected one of {list(modes)} (dialect {cfg.dialect})")
     if not isinstance(s.port, str):
         raise ProtocolError(f"[source] port = {s.port!r}: expected a string (device path or URL)")
-    if s.poll_s <= 0:
-        raise ProtocolError(f"[source] poll_s = {s.poll_s!r}: expected > 0")
+    try:  # the beam monitor's period, bounded as the driver's polls are
+        checked_time("poll_s", s.poll_s)
+    except ValueError as exc:
+        raise ProtocolError(f"[source] {_refusal(exc)}") from None
     # a run that polls as asked must never trip it: the beam monitor polls every poll_s, the
     # driver's warm-up and ramp waits every limits.poll_s
     period = max(s.poll_s, cfg.poll_s)
@@ -489,11 +518,27 @@ def _check_source(s: SourceSettings) -> None:
         )
 
 
+#: The most frames one batch of a series may take (``[series] darks``, ``flats``,
+#: ``frames_per_step``; ``[detector] discard_after_change``, read out and dropped in the same
+#: batch). Why this ceiling: a batch is one stretch of the run with nobody needed -- for the flats
+#: and each step one continuous exposure. At the C7942's full resolution (2 frames a second, a
+#: 2240 x 2240 uint16 frame of 10 MB, C7942.md) 10 000 frames are 83 min of beam and 100 GB; at
+#: its fastest read-out (4 x 4 binning, 9 a second) still 18 min. That is 2000 times the paper's
+#: 5 frames a step, and averaging that many already lowers a frame's noise a hundredfold. Past
+#: it a count is a typo (an extra zero or three), which was taken: the run warned that the disk
+#: would fill only after connecting, then warmed the tube up and exposed until it did.
+FRAMES_PER_BATCH_MAX = 10_000
+
+#: The counts :data:`FRAMES_PER_BATCH_MAX` bounds, as (section, key).
+_BATCH_COUNTS = (
+    ("series", "darks"),
+    ("series", "flats"),
+    ("series", "frames_per_step"),
+    ("detector", "discard_after_change"),
+)
+
 #: The longest wait for a poll before the guardian switches off (``[source] watchdog_s``).
 WATCHDOG_MAX_S = 600.0
-
-#: The longest command spacing a protocol may ask for (``[source] min_interval_s``).
-MIN_INTERVAL_MAX_S = 1.0
 
 _SECTIONS = {
     "source": SourceSettings,
@@ -520,7 +565,7 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
         text_ = str(source)
         one_line = not text and "\n" not in text_
         if isinstance(source, Path) or (one_line and ("=" not in text_ or names_file(text_))):
-            where = text_
+            where = shown_name(text_)  # the file's name as names print (a newline, an escape)
             try:
                 text_ = Path(text_).read_text()
             except IsADirectoryError:
@@ -565,9 +610,12 @@ def load_protocol(source, *, text: bool = False, where: str = "protocol") -> Pro
                 f"{where}: unknown key {key!r}; expected output, name or a section [{'], ['.join(_SECTIONS)}]"
             )
     try:
-        return Protocol(**top)
+        p = Protocol(**top)
     except (TypeError, ProtocolError) as exc:
         raise ProtocolError(f"{where}: {exc}") from None
+    stated = data.get("source", {})
+    p.unstated_exposure = tuple(key for key in EXPOSURE_KEYS if key not in stated)
+    return p
 
 
 # -- the plan (and the dry run) ------------------------------------------------------------------
@@ -801,7 +849,7 @@ def check_sim(p: Protocol) -> None:
     (bits 14, a shape the frames do not have)."""
     from radiokit.io import PRESETS
     from sim.detector import PanelModel
-    from sim.scene import load_scene
+    from sim.scene import Detector, load_scene
 
     if p.sim.frame_period_s > p.detector.timeout_s:  # SimDetector would time out on every frame
         raise ProtocolError(
@@ -824,6 +872,16 @@ def check_sim(p: Protocol) -> None:
         raise ProtocolError(f"[detector] shape = {list(d.shape)}: {what}; give its shape or none")
     if d.preset is not None and (PRESETS[d.preset].rows, PRESETS[d.preset].cols) != (rows, cols):
         raise ProtocolError(f"[detector] preset = {d.preset!r}: {what}; give its preset or none")
+    pitch = Detector(scene.detector.preset, b).pixel_size_mm
+    if d.pixel_size_mm is not None and not math.isclose(d.pixel_size_mm, pitch, rel_tol=1e-9):
+        # refused, not warned of: the file records the panel's pitch (the frames are the virtual
+        # panel's), so a run that went on named another length than the protocol's in every
+        # millimetre measured from it -- what shape and bits are refused for above; and a
+        # warning is a line among the run's, after the warm-up has begun
+        raise ProtocolError(
+            f"[detector] pixel_size_mm = {shown(d.pixel_size_mm)}: the virtual bench's panel has a pitch of "
+            f"{pitch:g} mm ({scene.detector.preset} at binning {b}); give {pitch:g} or none"
+        )
     if d.bits != PanelModel.bits:
         raise ProtocolError(
             f"[detector] bits = {d.bits!r}: the virtual bench's panel is {PanelModel.bits}-bit (a C7942); "
@@ -1123,7 +1181,7 @@ def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
         # was a RecursionError traceback (review s52rvoff)
         stored = toml_loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ProtocolError(f"{shown(path)} (its stored protocol): not valid TOML: {exc}") from None
+        raise ProtocolError(f"{shown_name(path)} (its stored protocol): not valid TOML: {exc}") from None
     merged = tomllib.loads(now.to_toml())
     for section, key in _RESUME_SAME + _RESUME_SAME_SIM:
         old = stored.get(section) if isinstance(stored.get(section), dict) else {}
@@ -1162,7 +1220,9 @@ def _existing(path: Path, protocol: Protocol, *, sim: bool = False) -> dict:
     try:
         progress = read_progress(path)
         if progress.protocol is None:
-            raise ProtocolError(f"{path}: no protocol recorded in the file; not a compression series to resume")
+            raise ProtocolError(
+                f"{shown_name(path)}: no protocol recorded in the file; not a compression series to resume"
+            )
         # the stored text is a protocol, never the name of a file to open
         stored = _stored_protocol(path, progress.protocol, protocol)
         differ = _resume_differences(stored, protocol, sim)
@@ -1170,12 +1230,12 @@ def _existing(path: Path, protocol: Protocol, *, sim: bool = False) -> dict:
             # one series, one set of settings: a resumed 12-bit series recorded 14 bits for its
             # 12-bit darks, and a new pitch was dropped without a word (review s41acq)
             raise ProtocolError(
-                f"{path}: written by a protocol that differs in {'; '.join(differ)}; resume with the "
+                f"{shown_name(path)}: written by a protocol that differs in {'; '.join(differ)}; resume with the "
                 "file's settings (its /entry@protocol), or start a new file with -o"
             )
         keys, steps = progress.image_key, progress.step
     except (OSError, KeyError, TypeError, ValueError) as exc:
-        raise ProtocolError(f"{path}: cannot resume from this file ({exc})") from None
+        raise ProtocolError(f"{shown_name(path)}: cannot resume from this file ({exc})") from None
     done = {"darks": int(np.sum(keys == ImageKey.DARK)), "flats": int(np.sum(keys == ImageKey.FLAT)), "steps": {}}
     for i in range(1, len(protocol.series.steps) + 1):
         done["steps"][i] = int(np.sum((keys == ImageKey.PROJECTION) & (steps == i)))
@@ -1367,7 +1427,7 @@ def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
         log.warning(
             "%s: the series needs up to %.0f MB and %.0f MB are free: it will stop when the disk fills "
             "(--resume completes it on a disk with room)",
-            r.out,
+            shown_name(r.out),
             need / 1e6,
             free / 1e6,
         )
@@ -1407,7 +1467,7 @@ def _open_experiment(r: _Run):
         # the writer's own line (open in another program, a folder it cannot rename in)
         if isinstance(exc, OutputError):
             raise OSError(code, str(exc)) from None
-        raise OSError(code, f"{r.out}: cannot create the experiment file ({os.strerror(code)})") from None
+        raise OSError(code, f"{shown_name(r.out)}: cannot create the experiment file ({os.strerror(code)})") from None
     r.began_file = not existed and not r.resume
     if not r.resume:
         r.writer.record_run(p.to_toml(), {"detector": det.describe(), "source": getattr(src, "describe", lambda: {})()})
@@ -1571,7 +1631,7 @@ def _judge(r: _Run, what: str) -> None:
         raise _refused(r, what, exc, named, np.concatenate([frames[c] for c in named]), flat_idx.size) from None
     judged = f"{darks.shape[0]} darks" + (f" and {flats.shape[0]} flats" if flat_idx.size else "")
     for line in told:
-        log.warning("%s: the %s: %s", r.out, judged, line)
+        log.warning("%s: the %s: %s", shown_name(r.out), judged, line)
     log.info("%s: %s judged usable for calibration", r.out, judged)
 
 
@@ -1598,7 +1658,7 @@ def _refused(r: _Run, what: str, exc: ValueError, named, bad, n_flats: int) -> E
     )
     # the notebook gets this line from _stop; logged here too it would show twice on the console
     return FramesRefused(
-        f"{r.out}: the {what} just taken{with_flats} would be refused by radiokit calibrate: {exc}; {kept}, {later} "
+        f"{shown_name(r.out)}: the {what} just taken{with_flats} would be refused by radiokit calibrate: {exc}; {kept}, {later} "
         f"taken; then `--resume` takes new {retake}{change}"
     )
 
@@ -2037,7 +2097,7 @@ def _file_lost_cause(r: _Run, exc: BaseException) -> BaseException:
     n = r.writer.n_frames
     return OSError(
         errno.ENOENT,
-        f"{r.out}: removed while the series was writing it (by another program or by hand): the {n} "
+        f"{shown_name(r.out)}: removed while the series was writing it (by another program or by hand): the {n} "
         f"frame(s) it held are lost with it",
     )
 
@@ -2063,15 +2123,15 @@ def _stop_note(r: _Run, what: str, tube: str, kept: bool) -> str:
     """What the operator can do next, after :func:`_stop` (for the exception's note)."""
     if r.previous_aside is not None:
         return (
-            f"{what} in phase '{r.phase}': {tube}; no frame taken: another program made {r.out} meanwhile, and the "
+            f"{what} in phase '{r.phase}': {tube}; no frame taken: another program made {shown_name(r.out)} meanwhile, and the "
             f"previous series is kept in {r.previous_aside}"
         )
     if kept:
-        return f"{what} in phase '{r.phase}': {tube}; no frame taken: {r.out} holds the previous series, unchanged"
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken: {shown_name(r.out)} holds the previous series, unchanged"
     if r.discard_file:
-        return f"{what} in phase '{r.phase}': {tube}; no frame taken, {r.out} not kept: the run can start again"
+        return f"{what} in phase '{r.phase}': {tube}; no frame taken, {shown_name(r.out)} not kept: the run can start again"
     return (
-        f"{what} in phase '{r.phase}': {tube}; {r.res.frames_total} frames are saved in {r.out}; "
+        f"{what} in phase '{r.phase}': {tube}; {r.res.frames_total} frames are saved in {shown_name(r.out)}; "
         f"`radiokit acquire PROTOCOL --resume` completes the series"
     )
 
@@ -2148,8 +2208,8 @@ def _release(r: _Run, notebook):
         notes = getattr(r.stopped_by, "__notes__", None)
         if notes:
             notes[-1] = (
-                f"no frame taken: the previous series could not be put back under {r.out}; it is kept in "
-                f"{aside} (the next run of this file puts it back first, once the folder is writable)"
+                f"no frame taken: the previous series could not be put back under {shown_name(r.out)}; it is kept in "
+                f"{shown_name(aside)} (the next run of this file puts it back first, once the folder is writable)"
             )
     r.res.previous_aside = r.previous_aside
     # no frame of its own: the writer put the old file back (or never set it aside)
