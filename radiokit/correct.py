@@ -858,7 +858,24 @@ def _planned(segments):
             yield si, fi, step, (1.0 if factors is None else float(factors[j]))
 
 
-def _judge_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, list]:
+def _stack_pitch(pitch: dict, src) -> None:
+    """Keep in ``pitch`` the first pitch a frame file states (``sizes``, ``path``); refuse a file
+    stating another. Why: the stack keeps it (a 0.139 mm panel's corrected frames said nothing),
+    and one calibration corrects one panel's frames."""
+    from radiokit.io import check_same_pixel_size
+
+    sizes = {k: src.meta[k] for k in ("x_pixel_size", "y_pixel_size") if src.meta.get(k) is not None}
+    if not sizes:
+        return
+    if "sizes" in pitch:
+        check_same_pixel_size(
+            src.path, sizes, pitch["path"], pitch["sizes"], "frames of one panel are corrected together"
+        )
+    else:
+        pitch.update(sizes=sizes, path=src.path)
+
+
+def _judge_segments(inputs, cal: Calibration, image_keys, hints, pitch=None) -> tuple[list, list]:
     """Per source of ``inputs``, ``(index, frames, steps, exposure factors)`` of the frames to
     correct, and ``(frames, frame shape, dtype, image keys)`` of its header as judged: every frame
     of a file without image keys as a range, not a list -- a 14 kB HDF5 file declaring 10**8
@@ -870,10 +887,12 @@ def _judge_segments(inputs, cal: Calibration, image_keys, hints) -> tuple[list, 
 
     segments, headers = [], []
     stated: dict = {}  # the first frame file's own sub-array, where the calibration states none
+    pitch = {} if pitch is None else pitch  # filled with the frames' pitch (_stack_pitch)
 
     def judge(src):
         if not len(src):  # as `radiokit info` and `calibrate` say it
             raise FormatError(src.path, "no frames")
+        _stack_pitch(pitch, src)
         check_layout(cal, src.meta, src.path, stated)  # first: a quarter turn is no other frame size
         if src.frame_shape != cal.shape:
             raise FormatError(src.path, f"frames are {src.frame_shape}, the calibration is {cal.shape}")
@@ -1027,9 +1046,8 @@ def correct_files(
     # the calibration's shape is the panel's: a raw size fitting several presets (one 2240 x 2240
     # frame is four 2x2-binned ones) is read at it, where it was refused as ambiguous
     hints = {"panel_shape": cal.shape, **hints}
-    segments, headers = _judge_segments(inputs, cal, image_keys, hints)
-    n_plan = sum(len(picked) for _, picked, _, _ in segments)
-    if not n_plan:
+    segments, headers = _judge_segments(inputs, cal, image_keys, hints, pitch := {})  # pitch: the frames' own
+    if not (n_plan := sum(len(picked) for _, picked, _, _ in segments)):
         raise ValueError(f"{', '.join(map(shown, inputs))}: {_nothing_to_correct(headers, image_keys)}")
     sources = _OneOpen(inputs, headers, hints)
     try:
@@ -1049,6 +1067,7 @@ def correct_files(
                 pixel_mask_attrs=_mask_attrs(cal),
                 series_attrs={"saturated": _SATURATED_ATTRS},
                 sources=[str(p) for p in inputs],
+                pixel_sizes=pitch.get("sizes"),
             ) as writer,
             tqdm(total=n_plan, unit="frame", desc="correct", disable=not progress) as bar,
             _BackgroundWriter(writer) as bg,

@@ -137,7 +137,7 @@ class ExperimentWriter:
     pixel_size_mm : float
         Detector pixel pitch (written in metres as NeXus wants).
     source : dict, optional
-        ``name``, ``voltage_kv``, ``current_ua`` of the X-ray source.
+        ``name``, ``voltage_kv``, ``current_ua`` of the X-ray source (no ``name``: none recorded).
     detector_name : str
         Written to ``instrument/detector/description``.
     bit_depth : int, optional
@@ -470,12 +470,10 @@ class ExperimentWriter:
         _set_class(src, "NXsource")
         # Fixed-length strings: read() reads these, and reading a variable-length string parses
         # the global heap, which libhdf5 can hang or crash on when the file is corrupt.
-        for key, value in (
-            ("type", "Fixed Tube X-ray"),
-            ("name", source.get("name", "Hamamatsu L8121-01")),
-            ("probe", "x-ray"),
-        ):
-            src[key] = np.bytes_(str(value).encode("utf-8"))
+        # no name given: none written (it had been the L8121-01's, claimed for any lab's tube)
+        for key, value in (("type", "Fixed Tube X-ray"), ("name", source.get("name")), ("probe", "x-ray")):
+            if value is not None:
+                src[key] = np.bytes_(str(value).encode("utf-8"))
         for key, unit in (("voltage", "kV"), ("current", "uA")):
             value = source.get(f"{key}_{unit.lower()}")
             ds = src.create_dataset(key, data=np.nan if value is None else float(value))

@@ -58,6 +58,11 @@ def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=False, inpu
     return path
 
 
+#: The pitch a stack states beside its frames, in metres (read by :func:`radiokit.io.read` as
+#: an NXdetector's; :func:`read_stack` gives them no series)
+PITCH_NAMES = ("x_pixel_size", "y_pixel_size")
+
+
 class StackWriter:
     """Append frames of one shape and dtype to ``.h5`` or ``.tif`` as they are produced.
 
@@ -69,7 +74,10 @@ class StackWriter:
     ``series_attrs`` (HDF5 only) maps a per-frame series' name to its dataset's attributes (what
     a sentinel value in it means). ``sources`` (HDF5 only: a TIFF stack keeps no per-frame series
     to count into them) are the input files' names, written whole as ``/entry/sources`` (no JSON
-    bound: ``meta`` may summarise them, :func:`radiokit.correct.stack_meta`).
+    bound: ``meta`` may summarise them, :func:`radiokit.correct.stack_meta`). ``pixel_sizes``
+    (HDF5 only: a TIFF's resolution is read as a display's, never as a pitch), ``x_pixel_size``
+    and ``y_pixel_size`` in metres, are written beside the frames, where radiokit's reader looks
+    for an NXdetector's: a corrected stack keeps the pitch of the frames it came from.
 
     JSON is strict (:mod:`radiokit._json`): a non-finite number is null, and a dict names it in its
     ``"not_finite"`` and reads back as the number; a list attribute cannot carry that map, so a
@@ -100,8 +108,10 @@ class StackWriter:
         pixel_mask_attrs=None,
         series_attrs=None,
         sources=None,
+        pixel_sizes=None,
     ):
         self.path = Path(path)
+        self._pixel_sizes = dict(pixel_sizes or {})
         self._sources = None if sources is None else [os.fsencode(str(n)) for n in sources]
         self._series_attrs = {name: dict(attrs) for name, attrs in (series_attrs or {}).items()}
         self._pixel_mask = (pixel_mask, dict(pixel_mask_attrs or {}))
@@ -166,6 +176,8 @@ class StackWriter:
                 # strict JSON (radiokit._json): a non-finite number is null, named in "not_finite"
                 grp.attrs[key] = self._meta_json.get(key, value)
             self._write_pixel_mask(entry)
+            for axis, metres in self._pixel_sizes.items():  # PITCH_NAMES
+                grp.create_dataset(axis, data=float(metres)).attrs["units"] = "m"
             if self._sources is not None:  # each name's bytes: a name no UTF-8 can write is still its file's
                 entry.create_dataset(
                     SOURCES.rsplit("/", 1)[1], data=np.array(self._sources, dtype=object), dtype=h5py.string_dtype()
@@ -333,7 +345,8 @@ def read_stack(path, *, allow_external=False) -> StackRecord:
         budget, series = ReadBudget(path), {}
         budget.reserve(math.prod(ds.shape) * ds.dtype.itemsize, f"/{STACK_FRAMES} {ds.shape}")
         for name in h5[STACK]:
-            if name != ds.name.rsplit("/", 1)[1]:
+            # the pitch beside the frames (StackWriter's pixel_sizes) is no per-frame series
+            if name != ds.name.rsplit("/", 1)[1] and name not in PITCH_NAMES:
                 s = checked_dataset(path, h5, f"{STACK}/{name}", "buif", (1,), allow_external)
                 if s.shape != ds.shape[:1]:  # checked before reading: a series is one value per frame
                     # a name the file holds, as names print (s53)
