@@ -64,7 +64,7 @@ def _lock_free(path: str) -> bool:
 def test_a_close_as_the_reopen_renews_the_lock_never_lets_it_be_taken_again(monkeypatch):
     """The query on a lost link reopens the port; as it renews its share of the lock, another
     thread's close (past its wait for the exchange) runs to its end or to the step lock. Then no
-    flock is taken for the link once it is marked closing, the query fails as a link closed, and
+    flock is taken for the link once it is marked closing, the query fails (as a link closed, or unanswered where it took the step lock first), and
     the port's lock is free once both are done."""
     master, slave = os.openpty()
     path = os.ttyname(slave)
@@ -106,7 +106,11 @@ def test_a_close_as_the_reopen_renews_the_lock_never_lets_it_be_taken_again(monk
         assert not query.is_alive() and not closer["thread"].is_alive()
         assert True not in taken_while_closing, "the port's lock was taken again after the close let it go"
         raised = out.get("raised")
-        assert isinstance(raised, DeviceError) and "link was closed" in str(raised), out
+        # which the query meets first is the scheduler's: the close marks the link closing once the
+        # query lets the step lock go, and a query thread that takes it again first (a lock is not
+        # fair; a loaded machine) reopens and writes STS, whose reply this silent pty never sends
+        assert isinstance(raised, DeviceError), out
+        assert "link was closed" in str(raised) or "no reply to STS" in str(raised), out
         assert not link.is_open and link._hold is None
         assert _lock_free(path)
     finally:
