@@ -1554,6 +1554,14 @@ class FrameLevelError(CalibrationRefused):
 #: a flat caught in a tube's warm-up or a current spike reads a fair share of it
 LIT_SHARE = 0.1
 
+#: A dark whose pixels span over this share of the flats' signal above it holds an image
+#: (:func:`_check_lit_darks`): a lit image's background reads the flat's level, its object less
+LIT_SPAN = 0.5
+
+#: ... and spans over this many times its pixel noise: a dark's 5th-95th percentile spans ~3.3 of
+#: it (Gaussian), an image its contrast (a round phantom passing a quarter of a 12000-count flat: ~100)
+LIT_NOISE = 10.0
+
 
 def _check_levels(darks, flats, eps) -> None:
     """Refuse a flat frame closer to the darks' level than to the brightest flat's, or a dark frame
@@ -1565,11 +1573,47 @@ def _check_levels(darks, flats, eps) -> None:
     the frames of the wrong kind would move. A refused flat that is lit (:data:`LIT_SHARE`) is
     named as one of another exposure, not as a dark."""
     sample = (slice(None), slice(None, None, 4), slice(None, None, 4))
-    levels = {k: np.median(s[sample].reshape(len(s), -1), axis=1) for k, s in (("dark", darks), ("flat", flats))}
+    sampled = {"dark": darks[sample], "flat": flats[sample]}
+    levels = {k: np.median(s.reshape(len(s), -1), axis=1) for k, s in sampled.items()}
     dark = float(levels["dark"].min())
     signal = float(levels["flat"].max()) - dark
-    if signal <= eps:  # no flat level to compare with: refused as "not brighter" further on
-        return
+    if signal > eps:  # else no flat level to compare with: refused as "not brighter" further on
+        _check_stack_levels(levels, dark, signal)
+    _check_lit_darks(sampled["dark"], float(levels["flat"].max()), eps)
+
+
+def _check_lit_darks(darks, flat: float, eps) -> None:
+    """Refuse a dark frame that holds an image: its pixels (5th to 95th percentile) spanning over
+    :data:`LIT_SPAN` of the brightest flat's level above its own lowest, and over :data:`LIT_NOISE`
+    times its noise. Why: a projection given as
+    the only dark passed :func:`_check_levels` (no other dark to compare it with), and the flats'
+    response, lit only where the phantom absorbed, was refused as an image intensifier's circular
+    field. A dark's pixels differ by their noise and offsets, a small share of any usable flat's
+    signal; a lit image's by its contrast, up to the flat's whole level."""
+    for i, frame in enumerate(darks):
+        finite = frame[np.isfinite(frame)]
+        if not finite.size:  # no value to judge (refused as such further on)
+            continue
+        lo, hi = (float(v) for v in np.percentile(finite, (5, 95)))
+        room = flat - lo
+        # its noise, from neighbouring samples' differences (a scene's edges are few of them):
+        # flats taken with the beam off span their darks' noise, as a dark does -- not an image
+        steps = np.abs(np.diff(frame.astype(np.float64), axis=-1))
+        noise = float(np.median(steps[np.isfinite(steps)])) / 0.954 if steps.size else 0.0
+        if room > eps and hi - lo > max(LIT_SPAN * room, LIT_NOISE * noise):
+            raise FrameLevelError(
+                "dark",
+                i,
+                f"dark {i + 1} of {len(darks)} spans {hi - lo:.0f} counts between its pixels (5th to "
+                f"95th percentile), {100 * (hi - lo) / room:.0f} % of the brightest flat's "
+                f"{room:.0f} above its lowest: it is lit (a projection or flat given as the dark, or the beam on), "
+                "not a dark; take the darks with the beam off",
+            )
+
+
+def _check_stack_levels(levels: dict, dark: float, signal: float) -> None:
+    """:func:`_check_levels`' comparison of each frame's median with the darkest dark's and the
+    brightest flat's."""
     why = {
         "flat": "a dark, not a flat (a dark file among the flats, a closed shutter or the beam off)",
         "dark": "a flat, not a dark (a flat file among the darks, or the beam on)",

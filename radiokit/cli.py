@@ -279,6 +279,30 @@ def _calibration_summary(meta: dict) -> dict:
 _SATURATION_FRAMES = 8
 
 
+def _saturation_basis(bits, signed, declared, scaling, top, values, itemsize) -> str | None:
+    """What ``info`` says its saturation level is taken from. Where the file declares no depth
+    (wider than 8 bits) the level is said to be a guess, and one its values (up to half of it)
+    say little of. Why (s54): a 14-bit panel's dark said ">= 4095 (from the values)", read as
+    the ADC's top, where a dark's values say nothing of it."""
+    basis = (
+        f"declared {bits}-bit{' signed' if signed else ''}"
+        if declared
+        else f"from the values, above the declared {bits}-bit range"
+        if bits is not None
+        else "the 8-bit type's top"
+        if itemsize == 1
+        else "from the values"
+    )
+    if scaling:  # (a negative scale's top is the values' floor: not judged, said so)
+        basis = f"{basis} of the stored counts, {scaling['text']}" if top is not None else None
+    if basis is not None and bits is None and itemsize > 1 and top is not None:
+        basis += "; a guess: the file declares no bit depth"
+        high = float(np.max(values)) if values.size else None
+        if high is not None and high < (float(top) + 1) / 2:
+            basis += f", its values (up to {high:.7g}) under half of it: the ADC's may be higher"
+    return basis
+
+
 def _describe(path, src, every: bool, sample: int) -> dict:
     """What ``radiokit info`` reports of one open file: the range of its finite pixels (JSON has
     no NaN or Infinity), the NaN or inf ones and the saturated ones counted, in a few evenly
@@ -307,17 +331,7 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         ends = declared_levels(bits, signed, scaling, stack.dtype) if bits is not None else (None, None)
         declared = ends[1] is not None and top == ends[1]
         low = ends[0] if declared and signed else None
-        basis = (
-            f"declared {bits}-bit{' signed' if signed else ''}"
-            if declared
-            else f"from the values, above the declared {bits}-bit range"
-            if bits is not None
-            else "the 8-bit type's top"
-            if src.dtype.itemsize == 1
-            else "from the values"
-        )
-        if scaling:  # (a negative scale's top is the values' floor: not judged, said so)
-            basis = f"{basis} of the stored counts, {scaling['text']}" if top is not None else None
+        basis = _saturation_basis(bits, signed, declared, scaling, top, stack, src.dtype.itemsize)
     if scaling and top is None:
         basis = f"not checked: values scaled ({scaling['text']})"
     for i in picks:

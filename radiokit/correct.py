@@ -865,7 +865,10 @@ def _stack_pitch(pitch: dict, src) -> None:
     from radiokit.io import check_same_pixel_size
 
     sizes = {k: src.meta[k] for k in ("x_pixel_size", "y_pixel_size") if src.meta.get(k) is not None}
-    if not sizes:
+    # a DICOM's PixelSpacing (no ImagerPixelSpacing) is at the patient, the pitch over the
+    # magnification: kept as the stack's detector pitch, object sizes were divided by it twice,
+    # and the same panel's file stating ImagerPixelSpacing was refused as another panel's
+    if not sizes or src.meta.get("pixel_size_source") == "PixelSpacing":
         return
     if "sizes" in pitch:
         check_same_pixel_size(

@@ -178,6 +178,30 @@ _TIFF_TAGS = (
 )
 
 
+#: Frame files' suffixes :func:`directory_refusal` looks for in a folder given as a frame file
+_FRAME_SUFFIXES = (".tif", ".tiff", ".dcm", ".png", ".h5", ".hdf5", ".nxs", ".img", ".raw", ".his")
+
+
+def directory_refusal(path) -> str:
+    """ "is a directory, not a frame file: give its files (darks/*.tif)": the folder's most common
+    frame suffix among its first 1000 entries (a huge folder is not listed whole), ``.tif`` where
+    none is. Why: a new user gave ``--dark darks`` and was told only what it was not (s54)."""
+    counts: dict = {}
+    try:
+        with os.scandir(path) as entries:
+            for n, entry in enumerate(entries):
+                if n >= 1000:
+                    break
+                suffix = os.path.splitext(entry.name)[1].lower()
+                if suffix in _FRAME_SUFFIXES:
+                    counts[suffix] = counts.get(suffix, 0) + 1
+    except OSError:  # unreadable: the hint still says how
+        pass
+    suffix = max(counts, key=counts.get) if counts else ".tif"
+    folder = os.fsdecode(path).rstrip("/")
+    return f"is a directory, not a frame file: give its files ({shown(f'{folder}/*{suffix}')})"
+
+
 def _check_file(path) -> None:
     """Raise FormatError for a missing path, a directory or an empty regular file."""
     try:
@@ -187,7 +211,7 @@ def _check_file(path) -> None:
     except OSError as exc:
         raise FormatError(path, f"cannot be opened: {exc.strerror or exc}") from None
     if stat.S_ISDIR(st.st_mode):
-        raise FormatError(path, "is a directory, not a frame file")
+        raise FormatError(path, directory_refusal(path))
     if not stat.S_ISREG(st.st_mode):  # a FIFO would wait for a writer forever, /dev/zero never end
         raise FormatError(path, "is not a regular file (a FIFO, socket or device), not a frame file")
     check_readable(path)
@@ -227,7 +251,7 @@ def sniff(path) -> str:
         with open(path, "rb") as fh:
             start = fh.read(132)  # DICOM's signature is at byte 128
     except IsADirectoryError:
-        raise FormatError(path, "is a directory, not a frame file") from None
+        raise FormatError(path, directory_refusal(path)) from None
     except FileNotFoundError:
         raise FormatError(path, "no such file") from None
     except OSError as exc:  # permission denied, an I/O error

@@ -63,6 +63,19 @@ def write_tiff(path, image, /, *, meta=None, bigtiff=None, overwrite=False, inpu
 PITCH_NAMES = ("x_pixel_size", "y_pixel_size")
 
 
+def _names_encoding(names) -> str:
+    """The HDF5 string type that tells the truth of file names' bytes: UTF-8 where every name is,
+    else ASCII, HDF5's type for bytes of no stated encoding. Why (s54): a name no UTF-8 decodes
+    (Latin-1 ``caf\xe9.tif``) was stored under the UTF-8 type, and tools reading it as text
+    (h5py's ``asstr()``, h5dump, NeXus readers) failed on the whole dataset."""
+    try:
+        for name in names:
+            name.decode("utf-8")
+    except UnicodeDecodeError:
+        return "ascii"
+    return "utf-8"
+
+
 class StackWriter:
     """Append frames of one shape and dtype to ``.h5`` or ``.tif`` as they are produced.
 
@@ -180,7 +193,9 @@ class StackWriter:
                 grp.create_dataset(axis, data=float(metres)).attrs["units"] = "m"
             if self._sources is not None:  # each name's bytes: a name no UTF-8 can write is still its file's
                 entry.create_dataset(
-                    SOURCES.rsplit("/", 1)[1], data=np.array(self._sources, dtype=object), dtype=h5py.string_dtype()
+                    SOURCES.rsplit("/", 1)[1],
+                    data=np.array(self._sources, dtype=object),
+                    dtype=h5py.string_dtype(_names_encoding(self._sources)),
                 )
             self._alloc = int(n_frames or 0)
             dcpl = None
