@@ -1946,6 +1946,33 @@ def test_help_lists_format_with_the_general_options_not_the_raw_ones(command):
     }
 
 
+def _give_back_unmasked_under(monkeypatch, ours, command, hook):
+    """``_give_back(ours)`` on the branch without a signal mask (Windows'), forced on Linux by
+    taking ``pthread_sigmask`` away from ``signal``, the finished command's handler ``command``
+    in place and the profile ``hook`` set: what it raised (a KeyboardInterrupt's text, or None)
+    and the handlers it left. The process's own handlers are put back whatever happens."""
+    import signal
+
+    from radiokit.cli import _TAKEN, _give_back
+
+    before = {sig: signal.signal(sig, command) for sig in _TAKEN}
+    outcome = None
+    try:
+        with monkeypatch.context() as m:
+            m.delattr(signal, "pthread_sigmask")
+            sys.setprofile(hook)
+            try:
+                _give_back(ours)
+            except KeyboardInterrupt as exc:
+                outcome = str(exc)
+            finally:
+                sys.setprofile(None)
+        return outcome, {sig: signal.getsignal(sig) for sig in _TAKEN}
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+
+
 def test_the_give_back_without_a_signal_mask_puts_every_handler_back_and_loses_no_stop(monkeypatch):
     """Windows has no ``pthread_sigmask``: the caller's handlers were put back one by one, and a
     Ctrl-C landing midway (the caller's handler, back already, raises) cut the loop short -- the
@@ -1959,7 +1986,7 @@ def test_the_give_back_without_a_signal_mask_puts_every_handler_back_and_loses_n
     import collections
     import signal
 
-    from radiokit.cli import _TAKEN, _give_back
+    from radiokit.cli import _TAKEN
 
     got, commands = [], []
 
@@ -1987,22 +2014,7 @@ def test_the_give_back_without_a_signal_mask_puts_every_handler_back_and_loses_n
             sent.extend(stops)
             collections.deque(map(_thread.interrupt_main, stops), maxlen=0)  # both noted, none run yet
 
-    before = {sig: signal.signal(sig, command) for sig in _TAKEN}
-    outcome = None
-    try:
-        with monkeypatch.context() as m:
-            m.delattr(signal, "pthread_sigmask")
-            sys.setprofile(hook)
-            try:
-                _give_back(ours)
-            except KeyboardInterrupt as exc:
-                outcome = str(exc)
-            finally:
-                sys.setprofile(None)
-        after = {sig: signal.getsignal(sig) for sig in _TAKEN}
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
+    outcome, after = _give_back_unmasked_under(monkeypatch, ours, command, hook)
     assert sent == stops, "the hook never saw a handler put back"
     assert after == ours, after
     assert commands == []  # nothing went to the finished command's handler
@@ -2022,7 +2034,7 @@ def test_the_give_back_without_a_signal_mask_hands_every_noted_stop_on_when_the_
     import collections
     import signal
 
-    from radiokit.cli import _TAKEN, _give_back
+    from radiokit.cli import _TAKEN
 
     got, commands = [], []
 
@@ -2048,22 +2060,7 @@ def test_the_give_back_without_a_signal_mask_hands_every_noted_stop_on_when_the_
             sent.extend(stops)
             collections.deque(map(_thread.interrupt_main, stops), maxlen=0)  # both noted, none run yet
 
-    before = {sig: signal.signal(sig, command) for sig in _TAKEN}
-    outcome = None
-    try:
-        with monkeypatch.context() as m:
-            m.delattr(signal, "pthread_sigmask")
-            sys.setprofile(hook)
-            try:
-                _give_back(ours)
-            except KeyboardInterrupt as exc:
-                outcome = str(exc)
-            finally:
-                sys.setprofile(None)
-        after = {sig: signal.getsignal(sig) for sig in _TAKEN}
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
+    outcome, after = _give_back_unmasked_under(monkeypatch, ours, command, hook)
     assert sent == stops, "the hook never saw every note set"
     assert after == ours, after
     assert commands == []
