@@ -71,6 +71,28 @@ def _handler(code, offset: int):
     return next((e.target for e in _code_facts(code)[0] if e.start <= offset < e.end), None)
 
 
+def at_each_check_point(act):
+    """A local trace function (opcode events) calling ``act(frame, place)`` just past each place
+    of a frame where CPython 3.11 runs a pending signal's handler -- after a call, at a backward
+    jump -- whose raise would go where one at the next instruction goes (one the ``try`` around it
+    catches is that ``try``'s own business)."""
+    last: dict = {}
+
+    def local(frame, event, arg):
+        if event == "opcode":
+            code, offset = frame.f_code, frame.f_lasti
+            before, last[frame] = last.get(frame), offset
+            if (
+                before is not None
+                and before in _code_facts(code)[1]
+                and _handler(code, offset) == _handler(code, before)
+            ):
+                act(frame, before)
+        return local
+
+    return local
+
+
 def _stop_once_at_a_new_point(src, tried: set, *, into_transport: bool = False):
     """A trace function for this thread raising :class:`StopSignal` once, at the first point of the
     driver where a signal's handler can run -- (code, place, beam off/on, switch-off running) --
@@ -84,7 +106,6 @@ def _stop_once_at_a_new_point(src, tried: set, *, into_transport: bool = False):
     could not skip (raised at each line's start instead, one left a ``with``'s lock held at the
     NOP of a ``try:``: a hang no signal can cause)."""
     fired = {"at": None}
-    last: dict = {}
 
     def stop(frame, place):
         key = (frame.f_code, place, src._may_be_on, src._beam is not None, src._off_thread is not None)
@@ -93,17 +114,7 @@ def _stop_once_at_a_new_point(src, tried: set, *, into_transport: bool = False):
             fired["at"] = key
             raise StopSignal(signal.SIGTERM)
 
-    def local(frame, event, arg):
-        if event == "opcode":
-            code, offset = frame.f_code, frame.f_lasti
-            before, last[frame] = last.get(frame), offset
-            if (
-                before is not None
-                and before in _code_facts(code)[1]
-                and _handler(code, offset) == _handler(code, before)
-            ):
-                stop(frame, before)
-        return local
+    local = at_each_check_point(stop)
 
     def tracer(frame, event, arg):
         if frame.f_code.co_filename != driver.__file__:

@@ -23,7 +23,7 @@ import sys
 import time
 
 import pytest
-from test_l8121_stop_anywhere import _code_facts, _handler
+from test_l8121_stop_anywhere import at_each_check_point
 
 from acquisition import transport
 from acquisition.emulators.l8121 import L8121Model, PtyServer
@@ -46,7 +46,6 @@ def _once_at_a_new_point(tried: set, act):
     point of :data:`_TAKING`'s code (the transport's) not in ``tried`` yet (then added);
     ``fired["at"]`` the point, None when every point was tried."""
     fired = {"at": None}
-    last: dict = {}
 
     def at(frame, place):
         key = (frame.f_code.co_name, place)
@@ -55,17 +54,7 @@ def _once_at_a_new_point(tried: set, act):
             fired["at"] = key
             act()
 
-    def local(frame, event, arg):
-        if event == "opcode":
-            code, offset = frame.f_code, frame.f_lasti
-            before, last[frame] = last.get(frame), offset
-            if (
-                before is not None
-                and before in _code_facts(code)[1]
-                and _handler(code, offset) == _handler(code, before)
-            ):
-                at(frame, before)
-        return local
+    local = at_each_check_point(at)
 
     def tracer(frame, event, arg):
         if frame.f_code.co_filename != transport.__file__ or frame.f_code.co_name not in _TAKING:
