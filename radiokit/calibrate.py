@@ -1562,6 +1562,11 @@ LIT_SPAN = 0.5
 #: it (Gaussian), an image its contrast (a round phantom passing a quarter of a 12000-count flat: ~100)
 LIT_NOISE = 10.0
 
+#: ... and either spans over :data:`LIT_SPAN` beyond the flats' pattern or lies under the flats by
+#: less than this share of that level (its pixels' median): a dark's offsets lie under a usable
+#: flat by its signal, a flat given as the dark at the flats' level
+LIT_GAP = 0.1
+
 
 def _check_levels(darks, flats, eps) -> None:
     """Refuse a flat frame closer to the darks' level than to the brightest flat's, or a dark frame
@@ -1579,17 +1584,24 @@ def _check_levels(darks, flats, eps) -> None:
     signal = float(levels["flat"].max()) - dark
     if signal > eps:  # else no flat level to compare with: refused as "not brighter" further on
         _check_stack_levels(levels, dark, signal)
-    _check_lit_darks(sampled["dark"], float(levels["flat"].max()), eps)
+    _check_lit_darks(sampled["dark"], sampled["flat"], float(levels["flat"].max()), eps)
 
 
-def _check_lit_darks(darks, flat: float, eps) -> None:
+def _check_lit_darks(darks, flats, flat: float, eps) -> None:
     """Refuse a dark frame that holds an image: its pixels (5th to 95th percentile) spanning over
     :data:`LIT_SPAN` of the brightest flat's level above its own lowest, and over :data:`LIT_NOISE`
-    times its noise. Why: a projection given as
-    the only dark passed :func:`_check_levels` (no other dark to compare it with), and the flats'
+    times its noise; and beyond the flats' median frame spanning over that share too or lying
+    under it by less than :data:`LIT_GAP` of the level (the pixels' median). Why: a projection
+    given as the only dark passed :func:`_check_levels` (no other dark to compare it with), and the flats'
     response, lit only where the phantom absorbed, was refused as an image intensifier's circular
     field. A dark's pixels differ by their noise and offsets, a small share of any usable flat's
-    signal; a lit image's by its contrast, up to the flat's whole level."""
+    signal; a lit image's by its contrast, up to the flat's whole level. The second test: a
+    panel's offsets (read-out blocks a couple hundred counts apart, a gradient) under a low-kV
+    flat a few hundred counts above them spanned more than the flat's signal, and a true dark
+    was refused; the flats carry the same offsets, so what the dark holds beyond them (less the
+    flats' signal) spans the field's unevenness, a lit image's the contrast still; a flat given
+    as the dark holds no more than the flats do, but at their level, not under it."""
+    reference = np.median(flats, axis=0)  # the flats' offsets and field, their noise averaged
     for i, frame in enumerate(darks):
         finite = frame[np.isfinite(frame)]
         if not finite.size:  # no value to judge (refused as such further on)
@@ -1600,7 +1612,13 @@ def _check_lit_darks(darks, flat: float, eps) -> None:
         # flats taken with the beam off span their darks' noise, as a dark does -- not an image
         steps = np.abs(np.diff(frame.astype(np.float64), axis=-1))
         noise = float(np.median(steps[np.isfinite(steps)])) / 0.954 if steps.size else 0.0
-        if room > eps and hi - lo > max(LIT_SPAN * room, LIT_NOISE * noise):
+        # a float64 difference: an unsigned frame less its flat would wrap
+        beyond = frame.astype(np.float64) - reference
+        beyond = beyond[np.isfinite(beyond)]
+        own = float(np.subtract(*np.percentile(beyond, (95, 5)))) if beyond.size else 0.0
+        under = -float(np.median(beyond)) if beyond.size else 0.0
+        beyond_flats = own > LIT_SPAN * room or under < LIT_GAP * room
+        if room > eps and hi - lo > max(LIT_SPAN * room, LIT_NOISE * noise) and beyond_flats:
             raise FrameLevelError(
                 "dark",
                 i,
