@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+from pathlib import Path
 
 import pytest
 import tomli_w
@@ -571,3 +572,142 @@ def test_a_source_command_prints_a_hostile_port_name_as_names_print(tmp_path, ca
     text = captured.out + captured.err
     assert code == 0 and "\x1b" not in text, text
     assert shown(link) in text, text
+
+
+# -- the protocol's own times: waits and estimates bounded as the source's are (review s54rvacq) --
+
+
+def _protocol_time_keys():
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    return sorted(PROTOCOL_TIME_LIMITS)
+
+
+def test_every_wait_and_estimate_of_a_protocol_has_a_bound():
+    """Every time of a protocol's own sections (a key ending ``_s``) is in the one table, or is a
+    time bounded elsewhere (``[detector] timeout_s``, its ``settle_s`` below it, ``[source]``'s
+    driver times and watchdog): a 1e300 settle stalled a series for ever, an estimate overflowed the dry run's."""
+    import dataclasses
+
+    from acquisition.l8121 import TIME_LIMITS
+    from acquisition.protocols.compression_series import _SECTIONS, PROTOCOL_TIME_LIMITS
+
+    bounded_elsewhere = {
+        ("detector", "timeout_s"),
+        ("detector", "settle_s"),
+        ("source", "watchdog_s"),
+        ("source", "poll_s"),
+    }
+    bounded_elsewhere |= {("source", k) for k in TIME_LIMITS}
+    times = {(s, f.name) for s, cls in _SECTIONS.items() for f in dataclasses.fields(cls) if f.name.endswith("_s")}
+    assert times - bounded_elsewhere == set(PROTOCOL_TIME_LIMITS)
+
+
+@pytest.mark.parametrize("section, key", _protocol_time_keys(), ids=lambda v: v)
+@pytest.mark.parametrize("over", ["just over", "1e300"])
+def test_a_protocol_time_past_its_bound_sends_nothing(tmp_path, scene_file, emulator, capsys, section, key, over):
+    """``[series] settle_s = 1e300`` was taken: the series warmed the tube up, took its darks and
+    flats, then waited for ever before its first step (``[sim] settle_s`` likewise on the
+    virtual bench); an estimate that large made the dry run's plan ``inf`` minutes."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+    from radiokit.checks import shown
+
+    bound = PROTOCOL_TIME_LIMITS[section, key].max_s
+    value = math.nextafter(bound, math.inf) if over == "just over" else 1e300
+    line = refused(tmp_path, scene_file, emulator, capsys, setting(section, key, value), f"[{section}] {key}")
+    assert f"{shown(value)} s: at most {bound:g} s" in line, line
+
+
+def test_every_protocol_time_at_its_bound_is_a_protocol(tmp_path, scene_file):
+    """The bounds refuse no protocol a lab could mean (a gel that relaxes for hours, a warm-up
+    after months idle, a network share's slow writes): each at its bound is taken."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS, load_protocol
+
+    def edit(d):
+        for (section, key), limit in PROTOCOL_TIME_LIMITS.items():
+            d.setdefault(section, {})[key] = limit.max_s
+        d["detector"].update(timeout_s=600.0, settle_s=599.0)  # a share whose writes pause for minutes
+
+    p = load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit))
+    assert p.series.settle_s == PROTOCOL_TIME_LIMITS["series", "settle_s"].max_s
+
+
+def test_the_estimates_bounds_are_the_driver_s():
+    """The warm-up and ramp bounds of the protocol's estimates are the driver's waits'."""
+    from acquisition.l8121 import TIME_LIMITS
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    assert PROTOCOL_TIME_LIMITS["sim", "warmup_s"].max_s == TIME_LIMITS["warmup_timeout_s"].max_s
+    assert PROTOCOL_TIME_LIMITS["source", "warmup_estimate_s"].max_s == TIME_LIMITS["warmup_timeout_s"].max_s
+    assert PROTOCOL_TIME_LIMITS["sim", "ramp_s"].max_s == TIME_LIMITS["stable_timeout_s"].max_s
+
+
+def test_the_settle_bound_rests_on_the_tube_s_idle_warm_up():
+    """L8121.md: dialect B's DAG names a warm-up mode "after 8 h idle"; the series warms up once,
+    at its start, so a step that waited longer found the tube needing a warm-up it never gets."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    text = (Path(__file__).resolve().parents[1] / ".." / "shared" / "hardware" / "L8121.md").read_text()
+    assert "after 8 h idle" in text
+    assert PROTOCOL_TIME_LIMITS["series", "settle_s"].max_s == 8 * 3600
+
+
+@pytest.mark.parametrize("value", [0, 0.0])
+def test_a_frame_wait_of_no_time_is_refused(tmp_path, scene_file, emulator, capsys, value):
+    """``[detector] timeout_s = 0`` was taken: every frame of a flat's batch 'timed out' at once,
+    after the tube had been switched on for it."""
+    refused(tmp_path, scene_file, emulator, capsys, setting("detector", "timeout_s", value), "[detector] timeout_s")
+
+
+def test_a_frame_file_settle_no_shorter_than_the_frame_wait_is_refused(tmp_path, scene_file, emulator, capsys):
+    """A frame file is taken once it has held still for ``[detector] settle_s``; the wait for it is
+    ``timeout_s``: a settle as long as the wait timed out every frame, X-rays on."""
+
+    def edit(d):
+        d["detector"].update(timeout_s=5.0, settle_s=5.0)
+
+    refused(tmp_path, scene_file, emulator, capsys, edit, "[detector] settle_s = 5", "timeout_s")
+
+
+# -- a resume compares the pitch the file records, not 0.05 mm (review s54rvacq) -----------------
+
+
+@pytest.mark.parametrize("binning", [None, 2])
+def test_a_sim_resume_compares_the_virtual_panel_s_binned_pitch(tmp_path, scene_file, binning):
+    """A series on the virtual panel binned 4 (pitch 0.2 mm; or [sim] binning 2: 0.1 mm), its
+    protocol silent on the pitch; the same protocol with the pitch stated (what check_sim asks
+    for) resumed it. The file's unset pitch was compared as 0.05 mm, and the resume refused a
+    setting it never changed (``--resume --sim``: "differs in [detector] pixel_size_mm")."""
+    from acquisition.protocols.compression_series import _resume_differences, load_protocol
+
+    pitch = 0.05 * (binning or BINNING)
+
+    def sim(pixel=None):
+        def edit(d):
+            if binning:
+                d["sim"]["binning"] = binning
+            if pixel is not None:
+                d["detector"]["pixel_size_mm"] = pixel
+
+        return load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit))
+
+    assert _resume_differences(sim(), sim(pitch), sim=True) == []
+    assert _resume_differences(sim(pitch), sim(), sim=True) == []
+
+
+@pytest.mark.parametrize("cols, pitch", [(1120, 0.1), (560, 0.2)])
+def test_a_lab_resume_compares_the_pitch_a_binned_shape_implies(cols, pitch):
+    """In the lab an unset pitch is the one the frames' width implies (the folder watcher's:
+    0.05 mm times the binning a 1120 or 560 column frame means), and the file records it: a
+    resume that states it is the same series; one that states 0.05 mm is not."""
+    from acquisition.protocols.compression_series import _resume_differences, load_protocol
+
+    def lab(pixel=None):
+        d = {"detector": {"folder": "frames", "shape": [cols, cols]}}
+        if pixel is not None:
+            d["detector"]["pixel_size_mm"] = pixel
+        return load_protocol(d)
+
+    assert _resume_differences(lab(), lab(pitch), sim=False) == []
+    assert _resume_differences(lab(pitch), lab(), sim=False) == []
+    assert any("pixel_size_mm" in said for said in _resume_differences(lab(), lab(0.05), sim=False))
