@@ -2289,11 +2289,12 @@ def test_cli_resume_takes_a_file_of_the_previous_release_and_settings_written_di
         now = protocol(tmp_path, scene_toml, dialect=dialect)
         path.write_text(now.to_toml())
         assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
-    # the pitch unset is the 0.05 mm the run assumes (with --sim a pitch stated must be the
-    # virtual panel's, here 0.2 mm: check_sim, tests/test_acquire_hostile_protocols.py)
-    from acquisition.protocols.compression_series import _same_setting
+    # the pitch unset is the one the run records: 0.05 mm for a lab frame of no binned width
+    # (with --sim the virtual panel's, here 0.2 mm: check_sim; a binned lab shape's and the
+    # virtual panel's: tests/test_acquire_hostile_protocols.py)
+    from acquisition.protocols.compression_series import _recorded_pitch
 
-    assert _same_setting("detector", "pixel_size_mm", None, 0.05)
+    assert _recorded_pitch(load_protocol({"detector": {"folder": "f", "shape": [4, 4]}}), sim=False) == 0.05
     now = protocol(tmp_path, scene_toml, dialect="A")
     now.sim.seed = 7  # a setting that shapes the data is still compared
     path.write_text(now.to_toml())

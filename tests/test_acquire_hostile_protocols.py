@@ -711,3 +711,92 @@ def test_a_lab_resume_compares_the_pitch_a_binned_shape_implies(cols, pitch):
     assert _resume_differences(lab(), lab(pitch), sim=False) == []
     assert _resume_differences(lab(pitch), lab(), sim=False) == []
     assert any("pixel_size_mm" in said for said in _resume_differences(lab(), lab(0.05), sim=False))
+
+
+# -- the driver's and the transport's own lines name a hostile port as names print (s54rvacq) -----
+
+
+def test_the_driver_s_refusal_names_a_hostile_port_as_names_print(tmp_path, capsys):
+    """The driver's lines (``SourceFault: ...: X-rays not switched on: interlock open``) began
+    with the port raw: a link named with a terminal escape sent it to the terminal."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    model.open_interlock()
+    link = tmp_path / "tty\x1b[2J"
+    with PtyServer(model) as server:
+        link.symlink_to(server.url)
+        code = main(
+            [
+                "acquire",
+                "source",
+                "on",
+                "--port",
+                str(link),
+                "--dialect",
+                "A",
+                "--kv",
+                "60",
+                "--ua",
+                "250",
+                "--for",
+                "1",
+            ]
+        )
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code != 0 and "interlock" in text, text
+    assert "\x1b" not in text and shown(link) in text, text
+    assert not model.xray_on
+
+
+def test_the_transport_s_refusal_names_a_hostile_port_as_names_print(tmp_path, capsys):
+    """A port that cannot be opened: the transport's line printed the name raw."""
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    port = tmp_path / "no\x1b[2Jtty"
+    code = main(["acquire", "source", "status", "--port", str(port), "--dialect", "A"])
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code != 0 and "\x1b" not in text, text
+    assert shown(port) in text, text
+
+
+def test_the_driver_s_api_refusal_names_a_hostile_port_as_names_print():
+    """Python API: the refusal of a warm-up time-out past its bound, nothing sent."""
+    from acquisition.l8121 import L8121
+    from radiokit._names import shown
+
+    port = "/dev/no\x1b]2;x\x07tty"
+    src = L8121(port, connect=False)
+    with pytest.raises(ValueError) as err:
+        src.warm_up(timeout_s=1e300)
+    assert str(err.value).startswith(f"{shown(port)}: ") and "\x1b" not in str(err.value)
+    assert src.port == port  # the name itself is kept: the port opened is the one typed
+
+
+def test_a_stored_protocol_refused_names_its_file_as_names_print(tmp_path, scene_file, emulator, capsys):
+    """A file whose stored protocol today's rules refuse (``settle_s = 1e300``, taken before its
+    bound): the line named the file raw, an escape in its name sent to the terminal."""
+    import tomllib
+
+    from radiokit._names import shown
+    from radiokit.cli import main
+    from radiokit.io import ExperimentWriter
+
+    model, server = emulator
+    out = tmp_path / "out" / "ser\x1b[2Jies.h5"
+    path = protocol(tmp_path, scene_file, server.url, setting("series", "settle_s", 0.0))
+    data = tomllib.loads(path.read_text())
+    data["series"]["settle_s"] = 1e300  # what the release before the bound recorded
+    with ExperimentWriter(out, shape=(PANEL, PANEL)) as w:
+        w.record_run(tomli_w.dumps(data), {})
+    code = main(["acquire", str(path), "--sim", "-o", str(out), "--resume", "-q"])
+    captured = capsys.readouterr()
+    lines = [ln for ln in (captured.out + captured.err).splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, lines
+    assert "\x1b" not in lines[0] and shown(out) in lines[0] and "[series] settle_s" in lines[0], lines
+    assert model.commands == []

@@ -1281,7 +1281,7 @@ def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
             target[key] = old[key]
         else:
             target.pop(key, None)
-    return load_protocol(merged, where=f"{path} (its stored protocol)")
+    return load_protocol(merged, where=f"{shown_name(path)} (its stored protocol)")
 
 
 def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]:
@@ -1992,7 +1992,7 @@ def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
         return resume, done, Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(
-            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+            f"{shown_name(out)}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
         )
     if not sim and devices is None:
         check_lab(p)  # before the notebook: a refused protocol leaves no file behind
@@ -2030,10 +2030,10 @@ def _open_notebook(out: Path) -> logging.Handler:
     try:
         notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
     except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
-        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
+        where = f"no folder {shown_name(out.parent)}" if not out.parent.is_dir() else exc.strerror or str(exc)
         raise OSError(
             exc.errno or errno.EIO,
-            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
+            f"{shown_name(out)}: cannot write the experiment file's lab notebook {shown_name(out.with_suffix('.log').name)} "
             f"({where}); nothing was sent to the devices",
         ) from None
     notebook.setLevel(logging.DEBUG)
