@@ -1360,6 +1360,15 @@ def probe(
     notes: list[str] = []
     rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
+    # the waits of a configuration's probe (probe_timeout_s, min_interval_s), bounded as there,
+    # before the port is opened: 1e300 was a probe that waited for ever on a silent port
+    for key, name, value in (
+        ("probe_timeout_s", "timeout_s", timeout_s),
+        ("min_interval_s", "min_interval_s", min_interval_s),
+    ):
+        said = None if value is None else time_refusal(key, value)
+        if said is not None:
+            raise ValueError(f"{shown_name(port)}: probe {name} = {shown(value)} ({key}): {said}; nothing sent")
     wait = max(d.timeout_s for d in DIALECTS.values()) if timeout_s is None else float(timeout_s)
     try:
         return _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, exchange, notes)

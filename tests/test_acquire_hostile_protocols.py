@@ -800,3 +800,13 @@ def test_a_stored_protocol_refused_names_its_file_as_names_print(tmp_path, scene
     assert code == 2 and len(lines) == 1, lines
     assert "\x1b" not in lines[0] and shown(out) in lines[0] and "[series] settle_s" in lines[0], lines
     assert model.commands == []
+
+
+@pytest.mark.parametrize("key, value", [("timeout_s", 1e300), ("timeout_s", math.nan), ("min_interval_s", 1e300)])
+def test_the_probe_s_own_waits_have_the_configuration_s_bounds(key, value):
+    """``probe(url, timeout_s=1e300)``, the Python API's probe: each reply waited for ever (the
+    same wait as ``probe_timeout_s``, bounded there); refused before the port is opened."""
+    from acquisition.l8121 import probe
+
+    with pytest.raises(ValueError, match="probe_timeout_s" if key == "timeout_s" else key):
+        probe("/dev/no-such-port-s54", **{key: value})
