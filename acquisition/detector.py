@@ -101,6 +101,17 @@ def _count(n) -> int:
     return n
 
 
+def implied_pixel_size_mm(preset: str | None, shape) -> float:
+    """The pitch a folder of frames is recorded with when the protocol gives none: the preset's,
+    else 0.05 mm (the C7942's, C7942.md) times the binning a 2240, 1120 or 560 column frame
+    means, else 0.05 mm. One rule for the watcher and for a resume's comparison of pitches."""
+    if preset is not None:
+        return PRESETS[preset].pixel_size_mm
+    if shape is not None and shape[1] in (2240, 1120, 560):
+        return 0.05 * (2240 // shape[1])
+    return 0.05
+
+
 # -- the vendor software's folder ---------------------------------------------------------------
 class FolderWatcher:
     """The C7942 through the files its vendor software writes into ``folder``.
@@ -202,11 +213,7 @@ class FolderWatcher:
         self._seen: dict[str, tuple] = {}  # name -> ((size, mtime_ns), monotonic time first seen so)
 
     def _pixel_size(self) -> float:
-        if self.preset is not None:
-            return PRESETS[self.preset].pixel_size_mm
-        if self.shape is not None and self.shape[1] in (2240, 1120, 560):
-            return 0.05 * (2240 // self.shape[1])
-        return 0.05
+        return implied_pixel_size_mm(self.preset, self.shape)
 
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:

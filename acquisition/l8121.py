@@ -95,7 +95,7 @@ from typing import Any
 
 from acquisition.errors import DeviceError, GuardianLost, NoReply, PortUnavailable, SourceFault, WriteTimedOut
 from acquisition.transport import SerialTransport
-from radiokit.checks import is_integer, is_number, shown, toml_loads
+from radiokit.checks import is_integer, is_number, shown, shown_name, toml_loads
 
 __all__ = [
     "L8121",
@@ -1291,7 +1291,7 @@ class ProbeResult:
             silent = [str(e.baudrate) for e in self.exchange if e.sent == "STS" and e.reply is None]
             why = "; ".join(([f"no reply (or junk) at {', '.join(silent)} baud"] if silent else []) + list(self.notes))
             return (
-                f"{self.port}: the replies fit neither dialect A nor B at "
+                f"{shown_name(self.port)}: the replies fit neither dialect A nor B at "
                 f"{', '.join(str(b) for b in dict.fromkeys(e.baudrate for e in self.exchange))} baud ({why})"
             )
         ident = f", identity {self.identity!r}" if self.identity else ", no identity query in this dialect"
@@ -1300,7 +1300,7 @@ class ProbeResult:
             got = f"answered {typ[-1].reply!r}" if typ[-1].reply is not None else "got no reply"
             ident = f", identity unknown (TYP {got})"
         more = "".join(f", {k} {v}" for k, v in self.details)
-        return f"{self.port}: dialect {self.dialect} at {self.baudrate} baud{ident}{more}"
+        return f"{shown_name(self.port)}: dialect {self.dialect} at {self.baudrate} baud{ident}{more}"
 
     def report(self) -> str:
         """The summary, then the raw exchange (for the lab notebook)."""
@@ -1360,6 +1360,15 @@ def probe(
     notes: list[str] = []
     rates = list(dict.fromkeys(baudrates)) if isinstance(url, str) else [getattr(url, "baudrate", None)]
     port = url if isinstance(url, str) else getattr(url, "port", str(url))
+    # the waits of a configuration's probe (probe_timeout_s, min_interval_s), bounded as there,
+    # before the port is opened: 1e300 was a probe that waited for ever on a silent port
+    for key, name, value in (
+        ("probe_timeout_s", "timeout_s", timeout_s),
+        ("min_interval_s", "min_interval_s", min_interval_s),
+    ):
+        said = None if value is None else time_refusal(key, value)
+        if said is not None:
+            raise ValueError(f"{shown_name(port)}: probe {name} = {shown(value)} ({key}): {said}; nothing sent")
     wait = max(d.timeout_s for d in DIALECTS.values()) if timeout_s is None else float(timeout_s)
     try:
         return _probe_rates(url, port, rates, wait, min_interval_s, keep_link_if_emitting, exchange, notes)
@@ -1543,7 +1552,7 @@ class Reidentify:
         else:
             self.reconnects += 1
         command = self.query.command
-        refused = f"{self.port}: after a reconnect, the device at the port"
+        refused = f"{shown_name(self.port)}: after a reconnect, the device at the port"
         try:
             reply = ask(command)
         except NoReply as exc:
@@ -1563,7 +1572,7 @@ class Reidentify:
             )
         logger.warning(
             "%s: reconnected; %s answered %r (the model connected to; no serial number tells the unit)",
-            self.port,
+            shown_name(self.port),
             command,
             reply,
         )
@@ -1795,13 +1804,15 @@ class L8121:
                 if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
                     # not switched off from here (refused): whoever ends this session must say so
                     self.emitting_at_connect = True
-                    logger.warning("%s: X-rays are on at connect, operate switch %s", self.port, self.switch_at_connect)
+                    logger.warning(
+                        "%s: X-rays are on at connect, operate switch %s", shown_name(self.port), self.switch_at_connect
+                    )
                 else:
                     logger.warning(
                         "%s: X-rays are ON at connect (left on by other software or a crash, or switched on at the controller); "
                         "radiokit switches them off before it lets the port go and says whether the controller "
                         "confirmed it: if no confirmation follows, switch off at the controller",
-                        self.port,
+                        shown_name(self.port),
                     )
                     self._may_be_on = True
             elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
@@ -1820,7 +1831,7 @@ class L8121:
             raise
         logger.info(
             "%s: %s connected (dialect %s, %d baud)",
-            self.port,
+            shown_name(self.port),
             self.identity or "L8121",
             self.dialect.name,
             self.baudrate,
@@ -1908,7 +1919,7 @@ class L8121:
         if self.off_failed is not None:  # a switch-off in this connect failed and said so already
             return
         self._may_be_on = True  # unknown until STS reads a state that cannot emit
-        logger.warning("%s: the connect failed; sending XOF all the same", self.port)
+        logger.warning("%s: the connect failed; sending XOF all the same", shown_name(self.port))
         try:
             self.off()
         except DeviceError as err:
@@ -1930,14 +1941,14 @@ class L8121:
             The port cannot be opened, or ``STS`` did not confirm the tube off (:attr:`off_failed`).
         """
         if not self.port_opened:
-            raise DeviceError(f"{self.port}: the port was never opened: no switch-off could be sent")
+            raise DeviceError(f"{shown_name(self.port)}: the port was never opened: no switch-off could be sent")
         if self.is_connected:
             self._may_be_on = True
             return self.off()
         # a guardian's link (``source warm-up``) released the port when the connect failed: open it here
         url = self.url if isinstance(self.url, str) else getattr(self.url, "url", None)
         if not isinstance(url, str) or getattr(self.url, "is_open", False):
-            raise DeviceError(f"{self.port}: the link is closed: no switch-off could be sent")
+            raise DeviceError(f"{shown_name(self.port)}: the link is closed: no switch-off could be sent")
         if self.dialect is None:
             return self._off_in_either_dialect(after_interrupt)
         link = SerialTransport(
@@ -2004,7 +2015,7 @@ class L8121:
         self._may_be_on = True
         where = f"XOF sent at {', '.join(map(str, sent))} baud" if sent else "no XOF could be sent"
         self.off_failed = DeviceError(
-            f"{self.port}: {where} (the dialect unknown: the probe's replies fitted neither), but no STS reply "
+            f"{shown_name(self.port)}: {where} (the dialect unknown: the probe's replies fitted neither), but no STS reply "
             f"read the tube off ({'; '.join(said) or 'none'}); switch the source off at the controller"
         )
         raise self.off_failed
@@ -2048,7 +2059,9 @@ class L8121:
     def _off_for_interrupt(self, exc: BaseException) -> None:
         """XOF and confirm on the open link for an interrupted connect that found X-rays on; the
         outcome goes on ``exc``: ``tube_state`` (confirmed) or ``off_failed``."""
-        logger.warning("%s: interrupted while X-rays were on (dialect %s): switching off", self.port, self.dialect.name)
+        logger.warning(
+            "%s: interrupted while X-rays were on (dialect %s): switching off", shown_name(self.port), self.dialect.name
+        )
         self._may_be_on = True
         try:
             exc.tube_state = self.off()
@@ -2078,7 +2091,7 @@ class L8121:
         if state in SourceState.__members__:  # the probe's STS is this session's reading too
             self._last_state = SourceState[state]
         for e in result.exchange:
-            logger.debug("%s probe: %s", result.port, e)
+            logger.debug("%s probe: %s", shown_name(result.port), e)
         if not result.found:
             if result.port_unavailable:
                 raise PortUnavailable(result.exchange[-1].error)  # no byte sent: say so, not "neither dialect"
@@ -2107,7 +2120,7 @@ class L8121:
             err = DeviceError(
                 f"{exc}; is this unit on {self.baudrate} baud and speaking dialect {self.dialect.name}? "
                 f'If it speaks dialect {other}, set dialect = "{other}" or "auto" '
-                f"(`radiokit acquire source probe --port {self.port}` tells)"
+                f"(`radiokit acquire source probe --port {shown_name(self.port)}` tells)"
             )
             # an answer that fits neither dialect's grammar is another instrument on the port: the
             # refused connect sends it no XOF (as a probe that fits neither sends nothing more)
@@ -2131,14 +2144,14 @@ class L8121:
                     else "configure model=None to accept any model"
                 )
                 raise DeviceError(
-                    f"{self.port}: TYP answered {self.identity!r}, expected {self.config.model!r} ({why})"
+                    f"{shown_name(self.port)}: TYP answered {self.identity!r}, expected {self.config.model!r} ({why})"
                 )
         else:
             switch = self.switch_at_connect = value
             if switch != "REMOTE" and self.control:
                 self._read_state_for_the_record()
                 err = DeviceError(
-                    f"{self.port}: the controller's operate switch is {switch} (SRL): it refuses remote "
+                    f"{shown_name(self.port)}: the controller's operate switch is {switch} (SRL): it refuses remote "
                     f"commands; turn it to REMOTE at the controller"
                 )
                 # the refused connect's XOF, refused alike, ends on an error naming the switch too:
@@ -2153,10 +2166,10 @@ class L8121:
         try:
             state = self._read("state")
         except DeviceError as exc:
-            logger.warning("%s: the state could not be read either: %s", self.port, exc)
+            logger.warning("%s: the state could not be read either: %s", shown_name(self.port), exc)
             return
         if state.emitting:
-            logger.warning("%s: X-rays are on (state %s)", self.port, state.name)
+            logger.warning("%s: X-rays are on (state %s)", shown_name(self.port), state.name)
 
     def close(self) -> None:
         """Switch X-rays off if this session may have left them on (confirmed), then close the link.
@@ -2177,7 +2190,7 @@ class L8121:
             if self._may_be_on:  # also over a link that dropped: the transport reopens it
                 self.off()
         finally:
-            port = self.port
+            port = shown_name(self.port)  # (said after the close)
             self._transport.close()
             self._transport = None
             logger.info("%s: closed", port)
@@ -2223,10 +2236,10 @@ class L8121:
             self._transport.close()
             self._transport = None
             if self.off_failed is None:
-                logger.warning("%s: detached with X-rays possibly on", self.port)
+                logger.warning("%s: detached with X-rays possibly on", shown_name(self.port))
             else:
                 # the same news as the switch-off's CRITICAL line: the notebook's, not a second warning
-                logger.info("%s: detached with X-rays possibly on", self.port, extra={OFF_FAILURE: True})
+                logger.info("%s: detached with X-rays possibly on", shown_name(self.port), extra={OFF_FAILURE: True})
 
     def __enter__(self) -> L8121:
         return self
@@ -2242,7 +2255,9 @@ class L8121:
                 # fail-safe that met the block's silence has said these words already)
                 self._log_off_failure(err)
             else:
-                logger.error("%s: while handling %s, switching off failed: %s", self.port, exc_type.__name__, err)
+                logger.error(
+                    "%s: while handling %s, switching off failed: %s", shown_name(self.port), exc_type.__name__, err
+                )
 
     def __repr__(self) -> str:
         dialect = self.dialect.name if self.dialect else "auto"
@@ -2253,7 +2268,7 @@ class L8121:
         the probe found): what a second process talking to the same unit (a guardian) should use, so that it
         connects without probing again."""
         if self.dialect is None:
-            raise DeviceError(f"{self.port}: dialect not known yet (connect() first)")
+            raise DeviceError(f"{shown_name(self.port)}: dialect not known yet (connect() first)")
         resolved = dataclasses.replace(
             self.config,
             # the model found (the probe's or connect's TYP), so the guardian's reconnect check
@@ -2289,7 +2304,7 @@ class L8121:
         operate switch, state): for switching off a unit whose dialect is already known, when one
         more exchange with a silent controller would only delay that (the guardian)."""
         if self.dialect is None:
-            raise DeviceError(f"{self.port}: attach() needs a known dialect (resolve() first)")
+            raise DeviceError(f"{shown_name(self.port)}: attach() needs a known dialect (resolve() first)")
         self._give_grammar(transport)
         self._transport = transport
         return self
@@ -2308,7 +2323,7 @@ class L8121:
     # ---- exchanges ----
     def _exchange(self, line: str, *, query: Query | None = None) -> str:
         if self._transport is None:
-            raise DeviceError(f"{self.port}: not connected (call connect())")
+            raise DeviceError(f"{shown_name(self.port)}: not connected (call connect())")
         me = threading.get_ident()
         error, check, seen = None, self._reidentify, None
         try:
@@ -2334,7 +2349,7 @@ class L8121:
             self._fail_safe(error)
             raise error
         if reply in ("ERR", "ERROR") and not (query is not None and query.error_is_value):
-            err = DeviceError(f"{self.port}: {line} refused by the controller ({reply})")
+            err = DeviceError(f"{shown_name(self.port)}: {line} refused by the controller ({reply})")
             err.refused = True  # the controller answered, and will not act (off() asks it why)
             if query is not None:  # a query is never refused by a working controller: as bad as garbage
                 self._fail_safe(err)
@@ -2345,7 +2360,7 @@ class L8121:
         """Send the dialect's query for the reading ``name`` and parse its reply."""
         query = self.dialect.readings.get(name)
         if query is None:
-            raise DeviceError(f"{self.port}: dialect {self.dialect.name} has no {name} reading")
+            raise DeviceError(f"{shown_name(self.port)}: dialect {self.dialect.name} has no {name} reading")
         value = self._parsed(query, self._exchange(query.command, query=query))
         if name in ("state", "beam"):
             self._last_state = value if name == "state" else value[0]
@@ -2358,7 +2373,7 @@ class L8121:
             return query.parse(reply)
         except ValueError as why:
             err = DeviceError(
-                f"{self.port}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
+                f"{shown_name(self.port)}: unparseable reply to {query.command} (dialect {self.dialect.name}): {reply!r} ({why})"
             )
             err.reply = reply  # what answered (the connect tells an L8121 from another instrument by it)
             self._fail_safe(err)
@@ -2370,7 +2385,9 @@ class L8121:
         line = command.line(self, value)  # validates before anything is sent
         reply = self._exchange(line)
         if not Command.is_echo(line, reply):
-            err = DeviceError(f"{self.port}: unexpected reply to {line}: {reply!r} (expected the echo {line!r})")
+            err = DeviceError(
+                f"{shown_name(self.port)}: unexpected reply to {line}: {reply!r} (expected the echo {line!r})"
+            )
             self._fail_safe(err)
             raise err
 
@@ -2402,11 +2419,11 @@ class L8121:
                 and self.off_failed is not None
                 and isinstance(self.off_failed.__cause__, NoReply)
             ):
-                raise NoReply(f"{self.port}: {line} not sent: the controller did not answer the switch-off")
+                raise NoReply(f"{shown_name(self.port)}: {line} not sent: the controller did not answer the switch-off")
             epoch = getattr(self._local, "epoch", None)
             if epoch is not None and epoch != self._routine_epoch:
                 raise SwitchedOff(
-                    f"{self.port}: {line} not sent: X-rays are being switched off (or a stop was asked) "
+                    f"{shown_name(self.port)}: {line} not sent: X-rays are being switched off (or a stop was asked) "
                     f"during this reading (it cannot vouch for the beam)"
                 )
             self._busy = me
@@ -2444,12 +2461,12 @@ class L8121:
             self._release_off(me)
             logger.info(
                 "%s: %s; X-rays were not confirmed off before (%s)",
-                self.port,
+                shown_name(self.port),
                 self._unported(cause),
                 self._unported(self.off_failed),
             )
             return
-        logger.info("%s: %s; switching X-rays off", self.port, self._unported(cause))
+        logger.info("%s: %s; switching X-rays off", shown_name(self.port), self._unported(cause))
         try:
             self.off()
         except DeviceError as exc:
@@ -2458,14 +2475,19 @@ class L8121:
             # a stop (Ctrl-C) cut this switch-off short: ``cause`` never reaches the caller, whose
             # line says only the stop -- the terminal read "stopped by SIGINT; tube off" and never
             # why the beam had gone off (review s43rr2). Said here, then, once
-            logger.error("%s: %s; X-rays were being switched off for it when stopped", self.port, self._unported(cause))
+            logger.error(
+                "%s: %s; X-rays were being switched off for it when stopped",
+                shown_name(self.port),
+                self._unported(cause),
+            )
             raise
 
     def _unported(self, exc) -> str:
         """``exc``'s message without the port it begins with (the transport's and the driver's
         name it): a line that names the port itself names it once."""
         text = str(exc)
-        return text[len(self.port) + 2 :] if text.startswith(f"{self.port}: ") else text
+        said = shown_name(self.port)  # as the messages name it
+        return text[len(said) + 2 :] if text.startswith(f"{said}: ") else text
 
     def tell_off_failure(self, exc) -> None:
         """Log a switch-off that was not confirmed (``exc``, what :meth:`off` raised), as this
@@ -2481,7 +2503,7 @@ class L8121:
         if text == self._off_failure_logged:
             return
         self._off_failure_logged = text
-        logger.critical("%s: %s", self.port, text, extra={OFF_FAILURE: True})
+        logger.critical("%s: %s", shown_name(self.port), text, extra={OFF_FAILURE: True})
 
     def _off_not_confirmed(self, exc) -> str:
         """A failed switch-off's line after the port (off_failed says it already)."""
@@ -2531,7 +2553,9 @@ class L8121:
         limit = self.config.ready_timeout_s if timeout_s is None else timeout_s
         said = time_refusal("ready_timeout_s", limit)  # the configuration's bound: queries only, but a wait
         if said is not None:
-            raise ValueError(f"{self.port}: timeout_s = {shown(limit)} (ready_timeout_s): {said}; nothing sent")
+            raise ValueError(
+                f"{shown_name(self.port)}: timeout_s = {shown(limit)} (ready_timeout_s): {said}; nothing sent"
+            )
         limit = float(limit)
         t0 = time.monotonic()
         state = self.status()
@@ -2541,13 +2565,13 @@ class L8121:
             if waited >= limit:
                 beam = self._beam_measured(state)
                 raise DeviceError(
-                    f"{self.port}: the controller's power-on checks did not finish within ready_timeout_s = "
+                    f"{shown_name(self.port)}: the controller's power-on checks did not finish within ready_timeout_s = "
                     f"{limit:g} s (still {state.said}{beam}); look at the controller (or raise [source] ready_timeout_s)"
                 )
             if not told:
                 logger.warning(
                     "%s: controller still in its power-on checks (state %s): waiting up to %g s",
-                    self.port,
+                    shown_name(self.port),
                     state.said,
                     limit,
                 )
@@ -2649,7 +2673,7 @@ class L8121:
         if self._error_cleared(code, asked):
             return
         raise SourceFault(
-            f"{self.port}: {what}: the controller reports error code {code} (SER {code}: {self._error_meaning(code)}); "
+            f"{shown_name(self.port)}: {what}: the controller reports error code {code} (SER {code}: {self._error_meaning(code)}); "
             f"no X-ray command was sent and nothing was reset. L8121.md does not say how the code clears: "
             f"see to the unit, then try again (a code the unit's manual calls harmless: allowed_error_codes "
             f"in its [source] configuration)"
@@ -2720,7 +2744,7 @@ class L8121:
         if self._error_cleared(code, asked):
             return
         err = SourceFault(
-            f"{self.port}: controller error code {code} read after X-rays were switched off (SER {code}: "
+            f"{shown_name(self.port)}: controller error code {code} read after X-rays were switched off (SER {code}: "
             f"{self._error_meaning(code)}); it may have stood since the last read with the beam on"
         )
         err.vouched_until = vouched
@@ -2749,7 +2773,7 @@ class L8121:
         # record) a focal spot the unit is not using, so the setting is read back as kV and µA are
         got = self._read("focus")
         if got != value:
-            raise DeviceError(f"{self.port}: focus: the controller reads back {got} after {value} was set")
+            raise DeviceError(f"{shown_name(self.port)}: focus: the controller reads back {got} after {value} was set")
 
     def check_focus(self, value: int) -> None:
         """Refuse a focus mode this dialect and configuration cannot set (``ValueError``); nothing
@@ -2826,7 +2850,7 @@ class L8121:
         got_kv, got_ua = self.setpoint()
         if abs(got_kv - kv) >= 0.5 or abs(got_ua - ua) >= 0.5:
             raise DeviceError(
-                f"{self.port}: the controller reads back {got_kv:g} kV {got_ua:g} µA after {kv} kV {ua} µA were "
+                f"{shown_name(self.port)}: the controller reads back {got_kv:g} kV {got_ua:g} µA after {kv} kV {ua} µA were "
                 f"set (voltage_scale {self.voltage_scale:g}); no X-ray command sent"
             )
         return got_kv, got_ua
@@ -2895,11 +2919,11 @@ class L8121:
         said = time_refusal("warmup_timeout_s", timeout_s)  # the configuration's bound, before the warm-up emits
         if said is not None:
             raise ValueError(
-                f"{self.port}: warm-up timeout_s = {shown(timeout_s)} (warmup_timeout_s): {said}; nothing sent"
+                f"{shown_name(self.port)}: warm-up timeout_s = {shown(timeout_s)} (warmup_timeout_s): {said}; nothing sent"
             )
         timeout_s = float(timeout_s)
         if (kv is None) != (ua is None):
-            raise ValueError(f"{self.port}: warm_up() takes kv and ua together (or neither); nothing sent")
+            raise ValueError(f"{shown_name(self.port)}: warm_up() takes kv and ua together (or neither); nothing sent")
         wanted = None if kv is None else self.validate(kv, ua)  # checked before anything is sent
         self.warmup_values = None
         state = self.settled_status()
@@ -2915,19 +2939,21 @@ class L8121:
                 if again != state:
                     self._warm_up_needed(again, force)  # its refusal: overload, X-rays on, not ready
                     raise DeviceError(
-                        f"{self.port}: warm-up not started: the state changed while SRB said BUSY "
+                        f"{shown_name(self.port)}: warm-up not started: the state changed while SRB said BUSY "
                         f"({state.said} before, {again.said} now); run it again"
                     )
             self.warmup_values = self._warm_up_values(wanted)
             if not self.interlock_closed():  # again, last before the start command (as on())
-                raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
+                raise SourceFault(
+                    f"{shown_name(self.port)}: warm-up not started: it emits X-rays and the interlock is open"
+                )
             self._require_no_controller_error("warm-up not started")  # it emits (B's may run on into XON)
             self._require_warm_up_still_due()
         bar = None
         if progress is True:
             from radiokit.progress import tqdm
 
-            bar = tqdm(total=round(timeout_s), desc=f"L8121 warm-up ({self.port})", unit="s", leave=False)
+            bar = tqdm(total=round(timeout_s), desc=f"L8121 warm-up ({shown_name(self.port)})", unit="s", leave=False)
         t0 = time.monotonic()
         self._may_be_on = True  # the warm-up sequence runs the tube
         try:
@@ -2936,7 +2962,7 @@ class L8121:
                 self._do("warm_up")
                 logger.info(
                     "%s: warm-up started with %s (timeout %g s)",
-                    self.port,
+                    shown_name(self.port),
                     self.dialect.settings["warm_up"].command,
                     timeout_s,
                 )
@@ -2951,7 +2977,7 @@ class L8121:
                 bar.close()
         self._may_be_on = False
         elapsed = time.monotonic() - t0
-        logger.info("%s: warm-up done in %.1f s", self.port, elapsed)
+        logger.info("%s: warm-up done in %.1f s", shown_name(self.port), elapsed)
         return elapsed
 
     def _warm_up_values(self, wanted: tuple[int, int] | None) -> tuple[int, int, bool]:
@@ -2975,7 +3001,7 @@ class L8121:
             raise DeviceError(f"{exc}; warm-up not started") from None
         logger.info(
             "%s: warm-up settings %d kV %d µA (%s) set and read back",
-            self.port,
+            shown_name(self.port),
             *wanted,
             "given" if given else "the lowest the configuration allows",
         )
@@ -2984,21 +3010,23 @@ class L8121:
     def _warm_up_needed(self, state: SourceState, force: bool) -> bool:
         """Whether to start (or wait for) a warm-up; raises when one must not start now."""
         if state == SourceState.XRAY_ON:
-            raise DeviceError(f"{self.port}: X-rays are on; call off() before warm_up()")
+            raise DeviceError(f"{shown_name(self.port)}: X-rays are on; call off() before warm_up()")
         if state == SourceState.OVERLOAD:
-            raise SourceFault(f"{self.port}: overload; inspect the tube, then reset() by hand")
+            raise SourceFault(f"{shown_name(self.port)}: overload; inspect the tube, then reset() by hand")
         if state not in (SourceState.WARMUP_NEEDED, SourceState.WARMING_UP, SourceState.STANDBY):
-            raise DeviceError(f"{self.port}: warm-up not started: {self._not_ready()} (state {state.name})")
+            raise DeviceError(f"{shown_name(self.port)}: warm-up not started: {self._not_ready()} (state {state.name})")
         if state == SourceState.STANDBY:
             if not force:
                 return False
             if self.dialect is DIALECT_B:
                 raise DeviceError(
-                    f"{self.port}: warm-up not started: dialect B starts it with XON, and with the "
+                    f"{shown_name(self.port)}: warm-up not started: dialect B starts it with XON, and with the "
                     f"warm-up done (DAG ... END) that XON would be an exposure"
                 )
         if state != SourceState.WARMING_UP and not self.interlock_closed():
-            raise SourceFault(f"{self.port}: warm-up not started: it emits X-rays and the interlock is open")
+            raise SourceFault(
+                f"{shown_name(self.port)}: warm-up not started: it emits X-rays and the interlock is open"
+            )
         return True
 
     def _wait_warm(self, t0: float, timeout_s: float, bar, progress, from_done: bool = False) -> None:
@@ -3030,7 +3058,9 @@ class L8121:
             if state.emitting:
                 self._watch_error_code("during the warm-up")
             if state == SourceState.OVERLOAD:
-                raise SourceFault(f"{self.port}: overload during warm-up; inspect the tube, then reset() by hand")
+                raise SourceFault(
+                    f"{shown_name(self.port)}: overload during warm-up; inspect the tube, then reset() by hand"
+                )
             if state == SourceState.WARMUP_NEEDED and (seen_running or elapsed > self.config.warmup_start_s):
                 # stopped, or never started although the start command was answered (the interlock
                 # opened, the controller refused it silently): not a reason to wait out the time-out
@@ -3060,7 +3090,9 @@ class L8121:
         if self.warmup_state() != WarmupState.DONE:
             why = f"{ran_on} and the controller does not report it done"
             raise self._switched_off(DeviceError, why, state, None, ask_code=False)
-        logger.info("%s: warm-up done (it ran on into X-rays on, switched off: state %s)", self.port, state.name)
+        logger.info(
+            "%s: warm-up done (it ran on into X-rays on, switched off: state %s)", shown_name(self.port), state.name
+        )
 
     def _warm_up_unseen(self, elapsed: float, from_done: bool) -> None:
         """The warm-up reads done (standby, A ``SWE 0`` / B ``DAG ... END``) but no poll read it
@@ -3086,7 +3118,9 @@ class L8121:
         if failed is not None:
             why = f"the warm-up read done after {elapsed:.1f} s without ever reading it running"
             raise self._switched_off(DeviceError, why, state, failed, ask_code=False) from failed
-        logger.info("%s: warm-up read done, never running: switched off to be sure (%s)", self.port, state.name)
+        logger.info(
+            "%s: warm-up read done, never running: switched off to be sure (%s)", shown_name(self.port), state.name
+        )
 
     def _warm_up_pending(self) -> bool:
         """Whether a warm-up whose state still reads "needed" is under way all the same: dialect A's
@@ -3110,10 +3144,10 @@ class L8121:
             )
         )
         if not self.interlock_closed():
-            raise SourceFault(f"{self.port}: {what}: interlock open")
+            raise SourceFault(f"{shown_name(self.port)}: {what}: interlock open")
         # a unit configured without SER (error_query = false) would refuse the query here
         code = f", error code {self.error_code()}" if self.config.error_query else ""
-        raise DeviceError(f"{self.port}: {what} (state WARMUP_NEEDED{code})")
+        raise DeviceError(f"{shown_name(self.port)}: {what} (state WARMUP_NEEDED{code})")
 
     def on(self, kv: float, ua: float) -> dict[str, Any]:
         """Switch X-rays on at ``kv`` kV and ``ua`` µA and wait for a stable beam.
@@ -3158,7 +3192,7 @@ class L8121:
             # the interlock again, last before XON: the settings and their read-back took several
             # exchanges since _require_ready read it, and B's XON is not documented to refuse it open
             if not self.interlock_closed():
-                raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+                raise SourceFault(f"{shown_name(self.port)}: X-rays not switched on: interlock open")
             self._require_no_controller_error("X-rays not switched on")  # last too: no fault standing
             self._require_warm_up_still_done()
             self._refuse_after_reconnect(seen, "X-rays not switched on", "switch on again")
@@ -3176,7 +3210,7 @@ class L8121:
             raise
         logger.info(
             "%s: X-rays on at %d kV %d µA: measured %g kV %g µA after %.2f s",
-            self.port,
+            shown_name(self.port),
             kv_i,
             ua_i,
             reading["voltage_kv"],
@@ -3215,12 +3249,14 @@ class L8121:
             SourceState.PREHEATING: "STS answers ERROR: pre-heating, or a refused query (dialect B does not say which)",
         }
         if state == SourceState.OVERLOAD:
-            raise SourceFault(f"{self.port}: overload; X-rays not switched on. Inspect the tube, then reset() by hand")
+            raise SourceFault(
+                f"{shown_name(self.port)}: overload; X-rays not switched on. Inspect the tube, then reset() by hand"
+            )
         if state != SourceState.STANDBY:
             why = reasons[state] or self._not_ready()
-            raise DeviceError(f"{self.port}: X-rays not switched on: {why} (state {state.said})")
+            raise DeviceError(f"{shown_name(self.port)}: X-rays not switched on: {why} (state {state.said})")
         if not self.interlock_closed():
-            raise SourceFault(f"{self.port}: X-rays not switched on: interlock open")
+            raise SourceFault(f"{shown_name(self.port)}: X-rays not switched on: interlock open")
 
     def _require_warm_up_still_done(self) -> None:
         """B: ``DAG`` still ``END``, read last before ``XON``. B's ``XON`` starts a warm-up when
@@ -3230,7 +3266,7 @@ class L8121:
         A's ``XON`` is refused unless standby: it cannot start a warm-up."""
         if self.dialect is DIALECT_B and not self._read("warmup").done:
             raise DeviceError(
-                f"{self.port}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
+                f"{shown_name(self.port)}: X-rays not switched on: warm-up needed, as DAG now says (YET): the controller "
                 "decided it while the settings were sent (call warm_up())"
             )
 
@@ -3241,7 +3277,7 @@ class L8121:
         warm-up's settings (review s46rv; switched off only at the first poll)."""
         if self.dialect is DIALECT_B and self._read("warmup").done:
             raise DeviceError(
-                f"{self.port}: warm-up not started: DAG now says it is done (END): its XON would be an "
+                f"{shown_name(self.port)}: warm-up not started: DAG now says it is done (END): its XON would be an "
                 "exposure; nothing that emits was sent"
             )
 
@@ -3251,7 +3287,7 @@ class L8121:
         whether ``SRB`` said ``BUSY`` and was waited for (:meth:`_await_remote_ready`): what was
         read before is then that old."""
         if "operate_switch" in self.dialect.readings and (switch := self.operate_switch()) != "REMOTE":
-            raise DeviceError(f"{self.port}: {what}: the operate switch is {switch}, not REMOTE")
+            raise DeviceError(f"{shown_name(self.port)}: {what}: the operate switch is {switch}, not REMOTE")
         return self._await_remote_ready(what)
 
     def _await_remote_ready(self, what: str) -> bool:
@@ -3278,15 +3314,15 @@ class L8121:
             waited = time.monotonic() - t0
             if not busy:
                 if told:
-                    logger.info("%s: remote operation READY after %.1f s", self.port, waited)
+                    logger.info("%s: remote operation READY after %.1f s", shown_name(self.port), waited)
                 return told
             if waited >= limit:
                 raise DeviceError(
-                    f"{self.port}: {what}: the controller's remote operation stayed BUSY (SRB) for "
+                    f"{shown_name(self.port)}: {what}: the controller's remote operation stayed BUSY (SRB) for "
                     f"ready_timeout_s = {limit:g} s; look at the controller (or raise [source] ready_timeout_s)"
                 )
             if not told:
-                logger.warning("%s: remote operation BUSY (SRB): waiting up to %g s", self.port, limit)
+                logger.warning("%s: remote operation BUSY (SRB): waiting up to %g s", shown_name(self.port), limit)
                 told = True
             time.sleep(min(self.config.poll_s, max(limit - waited, 0.0)))
 
@@ -3490,7 +3526,7 @@ class L8121:
         not what was set); not of a controller whose switch-off failed."""
         code = self._error_code_after_off() if ask_code else None
         outcome = OffOutcome(self.port, cause, state=state, failure=failed, error_code=code)
-        err = kind(f"{self.port}: {cause}; {outcome.note}")
+        err = kind(f"{shown_name(self.port)}: {cause}; {outcome.note}")
         err.switch_off = outcome
         return err
 
@@ -3614,7 +3650,7 @@ class L8121:
                 if state is not None:
                     self._may_be_on, self._beam, self.off_failed, self._off_state = False, None, None, state
                     self._off_failure_logged = None  # a later failure is news again
-                    logger.info("%s: X-rays off (state %s)", self.port, state.name)
+                    logger.info("%s: X-rays off (state %s)", shown_name(self.port), state.name)
                     if self.unit_unverified:
                         logger.critical("%s", self.unverified_warning(state))
                     return state
@@ -3639,7 +3675,7 @@ class L8121:
             why = _not_remote(switch) if switch is not None else "; the controller does not answer" if silent else ""
             tried = f"{attempt + 1} attempt(s)"
             self.off_failed = DeviceError(
-                f"{self.port}: could not confirm X-rays off after {tried} "
+                f"{shown_name(self.port)}: could not confirm X-rays off after {tried} "
                 f"(last: {self._unported(last)}){why}; switch the source off at the controller"
             )
             # the facts a caller decides on, as fields: its message is the operator's, free to be reworded
@@ -3662,14 +3698,14 @@ class L8121:
         only, and that unit may not hold the settings sent (or read back) before."""
         if self._reconnects() != seen:
             raise DeviceError(
-                f"{self.port}: {what}: the link was lost and reopened after the settings were sent, and "
+                f"{shown_name(self.port)}: {what}: the link was lost and reopened after the settings were sent, and "
                 f"the unit now at the port is known only by its model; {then}"
             )
 
     def unverified_warning(self, state: SourceState) -> str:
         """The operator's warning after an off confirmed by a unit known only by its model."""
         return (
-            f"{self.port}: the link was lost and reopened while X-rays may have been on: STS "
+            f"{shown_name(self.port)}: the link was lost and reopened while X-rays may have been on: STS "
             f"{state.name} confirms the unit now at the port, which the L8121 identifies only by its "
             "model (no serial number); if the adapter was re-plugged or the path moved, check by hand "
             "that the unit first connected is off"
@@ -3687,7 +3723,7 @@ class L8121:
                 return None, exc, silent and isinstance(exc, NoReply)
             if state in _OFF_STATES:
                 return state, last, False
-            last = DeviceError(f"{self.port}: STS still {state.said} after XOF")
+            last = DeviceError(f"{shown_name(self.port)}: STS still {state.said} after XOF")
             if time.monotonic() + self.config.poll_s > until:
                 return None, last, False
             time.sleep(self.config.poll_s)
@@ -3719,6 +3755,6 @@ class L8121:
     def reset(self) -> SourceState:
         """Send ``RST`` (clears an overload) and return the new state. Never called automatically:
         an overload needs a person to look at the tube first."""
-        logger.warning("%s: RST sent by the user", self.port)
+        logger.warning("%s: RST sent by the user", shown_name(self.port))
         self._do("reset")
         return self.status()

@@ -34,6 +34,7 @@ import serial
 import serial.rfc2217
 
 from acquisition.errors import DeviceError, GuardianLost, NoReply, PortBusy, PortUnavailable, WriteTimedOut
+from radiokit.checks import shown_name
 from radiokit.interrupts import STOP_SIGNALS, held
 
 __all__ = ["SerialTransport", "PipeTransport", "PortHold", "hold_port", "adopt_hold"]
@@ -239,11 +240,11 @@ def _lock_device(url: str, key: str, *, again: bool = False) -> int | None:
         who = f" (pid {pid})" if pid is not None else ""
         if again:  # mid-session: this process did send through it, before the link was lost
             raise PortBusy(
-                f"{url}: another program{who} took this port while this radiokit process was not "
+                f"{shown_name(url)}: another program{who} took this port while this radiokit process was not "
                 "holding it (its link lost, or its X-ray guardian ending); nothing more was sent through it"
             ) from None
         raise PortBusy(
-            f"{url}: another program{who} holds this port (a radiokit series or source command in "
+            f"{shown_name(url)}: another program{who} holds this port (a radiokit series or source command in "
             "another terminal, or its X-ray guardian); radiokit sent nothing through it"
         ) from None
     return fd
@@ -497,6 +498,12 @@ class _StillQueued(serial.SerialTimeoutException):
         self.earlier = list(earlier)
 
 
+def _said(exc: BaseException) -> str:
+    """``exc``'s text with its control characters escaped: pyserial's repeats the port's name raw
+    (an escape in a name typed for ``--port`` reached the terminal inside the refusal)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(exc))
+
+
 class SerialTransport:
     """A line-oriented serial link with explicit time-outs and one exchange at a time.
 
@@ -553,13 +560,15 @@ class SerialTransport:
     ):
         if timeout_s <= 0 or write_timeout_s <= 0:
             raise ValueError(
-                f"{url}: time-outs must be positive (timeout_s={timeout_s}, "
+                f"{shown_name(url)}: time-outs must be positive (timeout_s={timeout_s}, "
                 f"write_timeout_s={write_timeout_s}); a link without a time-out can hang"
             )
         if min_interval_s < 0 or retries < 0:
-            raise ValueError(f"{url}: min_interval_s ({min_interval_s}) and retries ({retries}) must be >= 0")
+            raise ValueError(
+                f"{shown_name(url)}: min_interval_s ({min_interval_s}) and retries ({retries}) must be >= 0"
+            )
         if not terminator:
-            raise ValueError(f"{url}: empty terminator")
+            raise ValueError(f"{shown_name(url)}: empty terminator")
         self.url = str(url)
         self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
@@ -666,7 +675,7 @@ class SerialTransport:
                         except _LINK_ERRORS as exc:
                             self._close_port()
                             raise DeviceError(
-                                f"{self.url}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
+                                f"{shown_name(self.url)}: link failed (lost, or a write timed out) during the identity check on opening ({exc})"
                             ) from exc
                 finally:
                     self._close_if_asked()
@@ -723,7 +732,7 @@ class SerialTransport:
                 # SIGPIPE at its default (gmsh) it killed the whole process, whatever the tube's state
                 ser.open()
         except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
-            raise PortUnavailable(f"{self.url}: cannot open the port ({exc})") from exc
+            raise PortUnavailable(f"{shown_name(self.url)}: cannot open the port ({_said(exc)})") from exc
         try:
             self._hold_opened(ser)
         except BaseException:
@@ -758,7 +767,7 @@ class SerialTransport:
         # guardian's, this one before a reconnect) may have had a reply just before the port was
         # opened, so the first command waits min_interval_s as if one had ended now.
         self._last_exchange = time.monotonic()
-        self.log.info("%s opened (%d baud, 8N1)", self.url, self.baudrate)
+        self.log.info("%s opened (%d baud, 8N1)", shown_name(self.url), self.baudrate)
 
     def _renew_hold(self) -> None:
         """This link's share of the port's lock taken, or renewed (:meth:`PortHold.renew`), before
@@ -810,7 +819,9 @@ class SerialTransport:
             # still nothing to lock (the node gone again, or flock unsupported there): as before
             return
         if not self._on(opened):
-            raise PortUnavailable(f"{self.url}: the port changed while it was being opened; nothing was sent")
+            raise PortUnavailable(
+                f"{shown_name(self.url)}: the port changed while it was being opened; nothing was sent"
+            )
 
     def _on(self, opened: os.stat_result) -> bool:
         """Whether this link's lock is held on the device ``opened`` (an fstat) names."""
@@ -930,7 +941,7 @@ class SerialTransport:
                         ser.close()
                     except (serial.SerialException, OSError):  # closing a dead link: nothing left to do
                         pass
-                self.log.info("%s closed", self.url)
+                self.log.info("%s closed", shown_name(self.url))
         finally:
             if hold is not None:
                 hold.release()
@@ -972,7 +983,7 @@ class SerialTransport:
             self.log.warning(
                 "%s: %d bytes still unsent after %.1f s (the port's output is not draining) hold %s, not "
                 "confirmed: left for the port to send as it closes (Linux waits up to 30 s for them)",
-                self.url,
+                shown_name(self.url),
                 left,
                 self.write_timeout_s,
                 " ".join(off),
@@ -983,7 +994,7 @@ class SerialTransport:
             self.log.warning(
                 "%s: %d bytes still unsent after %.1f s (the port's output is not draining) were "
                 "discarded, so that closing the port does not wait for them (up to 30 s on Linux)",
-                self.url,
+                shown_name(self.url),
                 left,
                 self.write_timeout_s,
             )
@@ -1021,7 +1032,7 @@ class SerialTransport:
             reply), or the link was lost and could not be re-established within ``retries``.
         """
         if any(end.decode() in command for end in _LINE_ENDS):
-            raise ValueError(f"{self.url}: command {command!r} contains a line end")
+            raise ValueError(f"{shown_name(self.url)}: command {command!r} contains a line end")
         payload = self._payload(command)
         me, since = threading.get_ident(), time.monotonic()
         with self._lock:
@@ -1062,17 +1073,17 @@ class SerialTransport:
                 if isinstance(exc, _DrainTimedOut):
                     # not WriteTimedOut, which says nothing went: a switch-off reads this XOF as sent
                     raise DeviceError(
-                        f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
+                        f"{shown_name(self.url)}: {command}: write timed out after {self.write_timeout_s:g} s: written, "
                         "but the port's output is not draining (it may still reach the controller)"
                     ) from exc
                 if isinstance(exc, _StillQueued):
                     raise WriteTimedOut(
-                        f"{self.url}: {command}: not sent: the port's output still holds "
+                        f"{shown_name(self.url)}: {command}: not sent: the port's output still holds "
                         f"{' '.join(exc.earlier)} after {self.write_timeout_s:g} s (not draining)"
                     ) from exc
                 if isinstance(exc, serial.SerialTimeoutException):
                     raise WriteTimedOut(
-                        f"{self.url}: {command}: write timed out after {self.write_timeout_s:g} s"
+                        f"{shown_name(self.url)}: {command}: write timed out after {self.write_timeout_s:g} s"
                     ) from exc
                 attempt += 1
                 self._close_port()
@@ -1082,7 +1093,7 @@ class SerialTransport:
                     # unit with settings this session never sent. The caller switches off
                     # (XOF is resent: it reconnects, checked) and the tube is said to be on.
                     raise DeviceError(
-                        f"{self.url}: {command}: link lost ({exc}) after it may have reached the "
+                        f"{shown_name(self.url)}: {command}: link lost ({exc}) after it may have reached the "
                         "controller; not sent again after a reconnect: X-rays may be on"
                     ) from exc
                 if isinstance(exc, _ClosedUnderIt):
@@ -1090,15 +1101,15 @@ class SerialTransport:
                     # port's lock held, after close() had returned -- the close undone (after the
                     # not-resent check above: its "X-rays may be on" is said first)
                     raise DeviceError(
-                        f"{self.url}: {command}: link lost ({exc}); not reconnected: the link was closed"
+                        f"{shown_name(self.url)}: {command}: link lost ({exc}); not reconnected: the link was closed"
                     ) from exc
                 if attempt > self.retries:
                     raise DeviceError(
-                        f"{self.url}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
+                        f"{shown_name(self.url)}: {command}: link lost ({exc}); gave up after {self.retries} reconnect(s)"
                     ) from exc
                 self.log.warning(
                     "%s: link lost during %s (%s); reconnecting (%d/%d)",
-                    self.url,
+                    shown_name(self.url),
                     command,
                     exc,
                     attempt,
@@ -1126,7 +1137,7 @@ class SerialTransport:
                         # the error claimed the command written (review s53: "XOF ... written")
                         what = f"{command}: not sent: " if command else ""
                         raise WriteTimedOut(
-                            f"{self.url}: {what}after the port was reopened, the identity check's "
+                            f"{shown_name(self.url)}: {what}after the port was reopened, the identity check's "
                             f"{check} did not leave the port within {self.write_timeout_s:g} s (its output is "
                             "not draining)"
                         ) from exc
@@ -1138,7 +1149,9 @@ class SerialTransport:
             # a silent device stays NoReply (a switch-off does not ask it again); a port that
             # cannot be opened any more is not PortUnavailable here: bytes went out before
             kind = NoReply if isinstance(reopen, NoReply) else DeviceError
-            raise kind(f"{self.url}: {command}: link lost ({lost}) and reconnecting failed ({reopen})") from lost
+            raise kind(
+                f"{shown_name(self.url)}: {command}: link lost ({lost}) and reconnecting failed ({reopen})"
+            ) from lost
 
     def _send_blind(self, command: str) -> None:
         """Write ``command`` once to a device that did not answer :attr:`on_reconnect`'s check,
@@ -1155,7 +1168,7 @@ class SerialTransport:
             self.log.warning(
                 "%s: %s written to a device that did not answer the identity check, but the port's output "
                 "is not draining (not confirmed; left for the port to send as it closes)",
-                self.url,
+                shown_name(self.url),
                 command,
             )
             return
@@ -1163,16 +1176,20 @@ class SerialTransport:
             self.log.warning(
                 "%s: %s written to a device that did not answer the identity check, but the port was lost as it "
                 "drained (%s): not known to have left (not confirmed)",
-                self.url,
+                shown_name(self.url),
                 command,
                 exc,
             )
             return
         except _LINK_ERRORS as exc:
-            self.log.warning("%s: %s could not be written to the unchecked device either (%s)", self.url, command, exc)
+            self.log.warning(
+                "%s: %s could not be written to the unchecked device either (%s)", shown_name(self.url), command, exc
+            )
             return
         self.log.warning(
-            "%s: %s written to a device that did not answer the identity check (not confirmed)", self.url, command
+            "%s: %s written to a device that did not answer the identity check (not confirmed)",
+            shown_name(self.url),
+            command,
         )
 
     def _ask(self, command: str) -> str:
@@ -1192,7 +1209,7 @@ class SerialTransport:
         self._flush_late(ser)  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
         self._rx = bytearray()
-        self.log.debug("%s > %s", self.url, command)
+        self.log.debug("%s > %s", shown_name(self.url), command)
         written = False
         try:
             if self._undrained:
@@ -1226,11 +1243,13 @@ class SerialTransport:
             if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
                 self._pending = (command, t0 + self.timeout_s)
-                self.log.debug("%s: %s interrupted (%s) before its reply", self.url, command, type(exc).__name__)
+                self.log.debug(
+                    "%s: %s interrupted (%s) before its reply", shown_name(self.url), command, type(exc).__name__
+                )
             raise
         finally:
             self._last_exchange = time.monotonic()
-        self.log.debug("%s < %s (%.1f ms)", self.url, reply, 1e3 * (self._last_exchange - t0))
+        self.log.debug("%s < %s (%.1f ms)", shown_name(self.url), reply, 1e3 * (self._last_exchange - t0))
         return reply
 
     def _wait_spacing(self, ser) -> None:
@@ -1349,7 +1368,7 @@ class SerialTransport:
         lines = [line for line in re.split(rb"[\r\n]", stale)[:-1] if line.strip()]
         for line in lines:
             late = self._owed.pop(0)[0] if self._owed else "an earlier command"
-            self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
+            self.log.debug("%s < %s (late reply to %s: discarded)", shown_name(self.url), _text(line).strip(), late)
 
     @contextlib.contextmanager
     def _closed_as_lost(self, ser, doing: str):
@@ -1402,7 +1421,7 @@ class SerialTransport:
         if not self.reply_fits(self._owed[0][0], text):
             return False
         late = self._owed.pop(0)[0]
-        self.log.debug("%s < %s (late reply to %s, not %s's: discarded)", self.url, text, late, command)
+        self.log.debug("%s < %s (late reply to %s, not %s's: discarded)", shown_name(self.url), text, late, command)
         return True
 
     def _drain_pending(self) -> None:
@@ -1420,13 +1439,17 @@ class SerialTransport:
         ser, buf = self._serial, self._rx
         while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
             if time.monotonic() >= deadline:
-                self.log.debug("%s: no late reply to the interrupted %s within its time-out", self.url, command)
+                self.log.debug(
+                    "%s: no late reply to the interrupted %s within its time-out", shown_name(self.url), command
+                )
                 self._owed.append((command, time.monotonic() + self.timeout_s))
                 self._timed_out = True
                 return
             buf += self._read_some(ser, f"it awaited the interrupted {command}'s reply")
         late = next(line for line in re.split(rb"[\r\n]", bytes(buf)) if line.strip())
-        self.log.debug("%s < %s (late reply to the interrupted %s: discarded)", self.url, _text(late).strip(), command)
+        self.log.debug(
+            "%s < %s (late reply to the interrupted %s: discarded)", shown_name(self.url), _text(late).strip(), command
+        )
         self._last_exchange = time.monotonic()  # the spacing counts from the controller's last reply
 
     def _await_late_reply(self) -> None:
@@ -1465,7 +1488,7 @@ class SerialTransport:
         for line in (line for line in re.split(rb"[\r\n]", bytes(buf))[:-1] if line.strip()):
             self._forget_overdue()
             late = self._owed.pop(0)[0] if self._owed else "an earlier command"
-            self.log.debug("%s < %s (late reply to %s: discarded)", self.url, _text(line).strip(), late)
+            self.log.debug("%s < %s (late reply to %s: discarded)", shown_name(self.url), _text(line).strip(), late)
         self._rx, self._timed_out = bytearray(), False
         self._last_exchange = heard  # the spacing counts from the controller's last byte
 
@@ -1505,7 +1528,11 @@ class SerialTransport:
                     if undecided is not None:
                         (first, late), undecided = undecided, None
                         self.log.debug(
-                            "%s < %s (late reply to %s, not %s's: discarded)", self.url, first, late, command
+                            "%s < %s (late reply to %s, not %s's: discarded)",
+                            shown_name(self.url),
+                            first,
+                            late,
+                            command,
                         )
                     elif (
                         self.reply_fits is not None
@@ -1539,10 +1566,10 @@ class SerialTransport:
                 return undecided[0]
             if left <= 0:
                 got = f"; partial reply {_quoted(bytes(buf))}" if buf else ""
-                self.log.debug("%s < (nothing within %g s)%s", self.url, self.timeout_s, got)
+                self.log.debug("%s < (nothing within %g s)%s", shown_name(self.url), self.timeout_s, got)
                 dsr = self.dsr_low()
                 got += f"; {dsr}" if dsr else ""
-                raise NoReply(f"{self.url}: no reply to {command} within {self.timeout_s:g} s{got}")
+                raise NoReply(f"{shown_name(self.url)}: no reply to {command} within {self.timeout_s:g} s{got}")
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
             buf += self._read_some(ser, f"it read the reply to {command}")
@@ -1679,14 +1706,14 @@ class PipeTransport:
             opened = not line.startswith("E 0 ")  # E 0: the guardian could not open the port at all
             why = repr(line) if opened else line[4:]
             error = DeviceError if opened else PortUnavailable
-            raise error(why if why.startswith(self.url) else f"{self.url}: X-ray guardian: {why}")
+            raise error(why if why.startswith(self.url) else f"{shown_name(self.url)}: X-ray guardian: {why}")
         self._open = True
         if self._hold is not None:
             # the guardian's inherited copy holds the lock: this process's would pin the node of an
             # adapter unplugged, which then came back under another name. The share stays: a
             # port this process opens after the guardian's death takes the lock again (renew)
             self._hold.hand_over()
-        self.log.info("%s opened through the X-ray guardian (pid %d)", self.url, self._process.pid)
+        self.log.info("%s opened through the X-ray guardian (pid %d)", shown_name(self.url), self._process.pid)
 
     def end_start(self, timeout_s: float) -> str | None:
         """The start was cut short (Ctrl-C in :meth:`wait_ready`, or it failed): ask the guardian
@@ -1734,7 +1761,7 @@ class PipeTransport:
     def open(self) -> None:
         """A no-op while the guardian serves; after :meth:`close` a new guardian is needed."""
         if not self._open:
-            raise DeviceError(f"{self.url}: released; the X-ray guardian has exited")
+            raise DeviceError(f"{shown_name(self.url)}: released; the X-ray guardian has exited")
 
     def close(self) -> None:
         """Release the port: the guardian closes it and exits, leaving the source as it is."""
@@ -1753,7 +1780,7 @@ class PipeTransport:
             except OSError:
                 pass
             self._finish()
-        self.log.info("%s released by this process (X-ray guardian exited)", self.url)
+        self.log.info("%s released by this process (X-ray guardian exited)", shown_name(self.url))
 
     def _finish(self) -> None:
         for f in (self._process.stdin, self._process.stdout):
@@ -1764,7 +1791,7 @@ class PipeTransport:
         try:
             self._process.wait(timeout=5.0)
         except Exception:
-            self.log.warning("%s: the X-ray guardian (pid %d) did not exit", self.url, self._process.pid)
+            self.log.warning("%s: the X-ray guardian (pid %d) did not exit", shown_name(self.url), self._process.pid)
 
     def __enter__(self) -> PipeTransport:
         return self
@@ -1779,7 +1806,7 @@ class PipeTransport:
         """Send ``command`` through the guardian and return the reply line (as
         :meth:`SerialTransport.query`, whose errors the guardian passes back as ``DeviceError``)."""
         if any(end.decode() in command for end in _LINE_ENDS) or "\n" in command:
-            raise ValueError(f"{self.url}: command {command!r} contains a line end")
+            raise ValueError(f"{shown_name(self.url)}: command {command!r} contains a line end")
         with self._lock:
             if self._lost:
                 direct = self._take_over()
@@ -1791,16 +1818,16 @@ class PipeTransport:
                     if getattr(self.on_reconnect, "handover", False):
                         self.on_reconnect.handover = False
             if not self._open:
-                raise DeviceError(f"{self.url}: {command}: the port has been released")
+                raise DeviceError(f"{shown_name(self.url)}: {command}: the port has been released")
             self._seq += 1
             seq = str(self._seq)
-            self.log.debug("%s > %s (via guardian)", self.url, command)
+            self.log.debug("%s > %s (via guardian)", shown_name(self.url), command)
             t0 = time.monotonic()
             try:
                 _write_no_sigpipe(self._wfd, f"Q {seq} {command}\n".encode("ascii"))
             except OSError as exc:
                 self._open, self._lost = False, True
-                raise GuardianLost(f"{self.url}: {command}: {self._died()} ({exc})") from exc
+                raise GuardianLost(f"{shown_name(self.url)}: {command}: {self._died()} ({exc})") from exc
             deadline = t0 + self._reply_wait_s
             while True:  # replies to requests that were interrupted earlier carry older numbers
                 kind, _, rest = self._read_line(deadline, command).partition(" ")
@@ -1811,7 +1838,7 @@ class PipeTransport:
                     self.watchdog_off = text
                 elif got == seq:
                     break
-            self.log.debug("%s < %s (%.1f ms)", self.url, text, 1e3 * (time.monotonic() - t0))
+            self.log.debug("%s < %s (%.1f ms)", shown_name(self.url), text, 1e3 * (time.monotonic() - t0))
             if kind == "R":
                 return text
             raise NoReply(text) if kind == "N" else DeviceError(text)
@@ -1825,7 +1852,7 @@ class PipeTransport:
             if check is not None and hasattr(check, "reconnects"):
                 check.reconnects += max(int(text), 0)
         except ValueError:
-            self.log.warning("%s: the X-ray guardian's reconnect line %r is not a count", self.url, text)
+            self.log.warning("%s: the X-ray guardian's reconnect line %r is not a count", shown_name(self.url), text)
 
     def _take_over(self) -> SerialTransport:
         """The guardian died: open the port it held, here (once), so that the switch-off that
@@ -1845,7 +1872,7 @@ class PipeTransport:
                     pass
             self.log.warning(
                 "%s: the X-ray guardian (pid %d) died; this process opens the port itself to switch off",
-                self.url,
+                shown_name(self.url),
                 self._process.pid,
             )
             self._direct = SerialTransport(
@@ -1906,10 +1933,10 @@ class PipeTransport:
                 wait_s = self._reply_wait_s if wait_s is None else wait_s
                 if command == "start":
                     raise NoReply(
-                        f"{self.url}: {who} did not report the port open within {wait_s:g} s of its start "
+                        f"{shown_name(self.url)}: {who} did not report the port open within {wait_s:g} s of its start "
                         "(a slow start: the computer may be busy)"  # what to do: once the tube's state is known (_end_start)
                     )
-                raise NoReply(f"{self.url}: {command}: no answer from {who} within {wait_s:g} s")
+                raise NoReply(f"{shown_name(self.url)}: {command}: no answer from {who} within {wait_s:g} s")
             ready, _, _ = select.select([self._rfd], [], [], left)
             if not ready:
                 continue
@@ -1918,8 +1945,10 @@ class PipeTransport:
                 self._open = False
                 self._lost = command != "start"  # (at start it could not open the port: nothing to take)
                 if command != "start":
-                    raise GuardianLost(f"{self.url}: {command}: {self._died()}")
-                raise DeviceError(f"{self.url}: the X-ray guardian exited as it started (code {self._exit_code()})")
+                    raise GuardianLost(f"{shown_name(self.url)}: {command}: {self._died()}")
+                raise DeviceError(
+                    f"{shown_name(self.url)}: the X-ray guardian exited as it started (code {self._exit_code()})"
+                )
             self._buf += data
         line, self._buf = self._buf.split(b"\n", 1)
         return line.decode("utf-8", "replace")  # the guardian writes UTF-8 (a reply's "µA")

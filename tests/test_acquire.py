@@ -1096,9 +1096,9 @@ def test_cli_a_file_not_to_resume_from_is_refused_exit_2_in_the_run_as_in_the_dr
     [
         # with --sim a protocol's bits are the virtual panel's 12 (check_sim): the file differs
         ("detector", "bits", 14, "[detector] bits = 12 (14 in the file)"),
-        # (the virtual panel's own pitch, 0.05 mm times the scene's binning 4: another is refused by
-        # check_sim before the file is looked at)
-        ("detector", "pixel_size_mm", 0.2, "[detector] pixel_size_mm = 0.2 (not set in the file)"),
+        # (no pitch: with --sim the only one check_sim takes is the virtual panel's, 0.05 mm times
+        # the scene's binning 4, which is what the file's unset pitch recorded -- the same series;
+        # a lab pitch that differs: tests/test_acquire_hostile_protocols.py, review s54rvacq)
         ("source", "focus", 1, "[source] focus = 1 (not set in the file)"),
         ("source", "dialect", "B", "[source] dialect = 'B' ('A' in the file)"),
         ("sim", "seed", 7, "[sim] seed = 7 (0 in the file)"),
@@ -2289,11 +2289,12 @@ def test_cli_resume_takes_a_file_of_the_previous_release_and_settings_written_di
         now = protocol(tmp_path, scene_toml, dialect=dialect)
         path.write_text(now.to_toml())
         assert _cli("acquire", str(path), "--sim", "--resume", "--dry-run") == 0, capsys.readouterr().err
-    # the pitch unset is the 0.05 mm the run assumes (with --sim a pitch stated must be the
-    # virtual panel's, here 0.2 mm: check_sim, tests/test_acquire_hostile_protocols.py)
-    from acquisition.protocols.compression_series import _same_setting
+    # the pitch unset is the one the run records: 0.05 mm for a lab frame of no binned width
+    # (with --sim the virtual panel's, here 0.2 mm: check_sim; a binned lab shape's and the
+    # virtual panel's: tests/test_acquire_hostile_protocols.py)
+    from acquisition.protocols.compression_series import _recorded_pitch
 
-    assert _same_setting("detector", "pixel_size_mm", None, 0.05)
+    assert _recorded_pitch(load_protocol({"detector": {"folder": "f", "shape": [4, 4]}}), sim=False) == 0.05
     now = protocol(tmp_path, scene_toml, dialect="A")
     now.sim.seed = 7  # a setting that shapes the data is still compared
     path.write_text(now.to_toml())

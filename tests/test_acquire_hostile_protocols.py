@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+from pathlib import Path
 
 import pytest
 import tomli_w
@@ -571,3 +572,241 @@ def test_a_source_command_prints_a_hostile_port_name_as_names_print(tmp_path, ca
     text = captured.out + captured.err
     assert code == 0 and "\x1b" not in text, text
     assert shown(link) in text, text
+
+
+# -- the protocol's own times: waits and estimates bounded as the source's are (review s54rvacq) --
+
+
+def _protocol_time_keys():
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    return sorted(PROTOCOL_TIME_LIMITS)
+
+
+def test_every_wait_and_estimate_of_a_protocol_has_a_bound():
+    """Every time of a protocol's own sections (a key ending ``_s``) is in the one table, or is a
+    time bounded elsewhere (``[detector] timeout_s``, its ``settle_s`` below it, ``[source]``'s
+    driver times and watchdog): a 1e300 settle stalled a series for ever, an estimate overflowed the dry run's."""
+    import dataclasses
+
+    from acquisition.l8121 import TIME_LIMITS
+    from acquisition.protocols.compression_series import _SECTIONS, PROTOCOL_TIME_LIMITS
+
+    bounded_elsewhere = {
+        ("detector", "timeout_s"),
+        ("detector", "settle_s"),
+        ("source", "watchdog_s"),
+        ("source", "poll_s"),
+    }
+    bounded_elsewhere |= {("source", k) for k in TIME_LIMITS}
+    times = {(s, f.name) for s, cls in _SECTIONS.items() for f in dataclasses.fields(cls) if f.name.endswith("_s")}
+    assert times - bounded_elsewhere == set(PROTOCOL_TIME_LIMITS)
+
+
+@pytest.mark.parametrize("section, key", _protocol_time_keys(), ids=lambda v: v)
+@pytest.mark.parametrize("over", ["just over", "1e300"])
+def test_a_protocol_time_past_its_bound_sends_nothing(tmp_path, scene_file, emulator, capsys, section, key, over):
+    """``[series] settle_s = 1e300`` was taken: the series warmed the tube up, took its darks and
+    flats, then waited for ever before its first step (``[sim] settle_s`` likewise on the
+    virtual bench); an estimate that large made the dry run's plan ``inf`` minutes."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+    from radiokit.checks import shown
+
+    bound = PROTOCOL_TIME_LIMITS[section, key].max_s
+    value = math.nextafter(bound, math.inf) if over == "just over" else 1e300
+    line = refused(tmp_path, scene_file, emulator, capsys, setting(section, key, value), f"[{section}] {key}")
+    assert f"{shown(value)} s: at most {bound:g} s" in line, line
+
+
+def test_every_protocol_time_at_its_bound_is_a_protocol(tmp_path, scene_file):
+    """The bounds refuse no protocol a lab could mean (a gel that relaxes for hours, a warm-up
+    after months idle, a network share's slow writes): each at its bound is taken."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS, load_protocol
+
+    def edit(d):
+        for (section, key), limit in PROTOCOL_TIME_LIMITS.items():
+            d.setdefault(section, {})[key] = limit.max_s
+        d["detector"].update(timeout_s=600.0, settle_s=599.0)  # a share whose writes pause for minutes
+
+    p = load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit))
+    assert p.series.settle_s == PROTOCOL_TIME_LIMITS["series", "settle_s"].max_s
+
+
+def test_the_estimates_bounds_are_the_driver_s():
+    """The warm-up and ramp bounds of the protocol's estimates are the driver's waits'."""
+    from acquisition.l8121 import TIME_LIMITS
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    assert PROTOCOL_TIME_LIMITS["sim", "warmup_s"].max_s == TIME_LIMITS["warmup_timeout_s"].max_s
+    assert PROTOCOL_TIME_LIMITS["source", "warmup_estimate_s"].max_s == TIME_LIMITS["warmup_timeout_s"].max_s
+    assert PROTOCOL_TIME_LIMITS["sim", "ramp_s"].max_s == TIME_LIMITS["stable_timeout_s"].max_s
+
+
+def test_the_settle_bound_rests_on_the_tube_s_idle_warm_up():
+    """L8121.md: dialect B's DAG names a warm-up mode "after 8 h idle"; the series warms up once,
+    at its start, so a step that waited longer found the tube needing a warm-up it never gets."""
+    from acquisition.protocols.compression_series import PROTOCOL_TIME_LIMITS
+
+    text = (Path(__file__).resolve().parents[1] / ".." / "shared" / "hardware" / "L8121.md").read_text()
+    assert "after 8 h idle" in text
+    assert PROTOCOL_TIME_LIMITS["series", "settle_s"].max_s == 8 * 3600
+
+
+@pytest.mark.parametrize("value", [0, 0.0])
+def test_a_frame_wait_of_no_time_is_refused(tmp_path, scene_file, emulator, capsys, value):
+    """``[detector] timeout_s = 0`` was taken: every frame of a flat's batch 'timed out' at once,
+    after the tube had been switched on for it."""
+    refused(tmp_path, scene_file, emulator, capsys, setting("detector", "timeout_s", value), "[detector] timeout_s")
+
+
+def test_a_frame_file_settle_no_shorter_than_the_frame_wait_is_refused(tmp_path, scene_file, emulator, capsys):
+    """A frame file is taken once it has held still for ``[detector] settle_s``; the wait for it is
+    ``timeout_s``: a settle as long as the wait timed out every frame, X-rays on."""
+
+    def edit(d):
+        d["detector"].update(timeout_s=5.0, settle_s=5.0)
+
+    refused(tmp_path, scene_file, emulator, capsys, edit, "[detector] settle_s = 5", "timeout_s")
+
+
+# -- a resume compares the pitch the file records, not 0.05 mm (review s54rvacq) -----------------
+
+
+@pytest.mark.parametrize("binning", [None, 2])
+def test_a_sim_resume_compares_the_virtual_panel_s_binned_pitch(tmp_path, scene_file, binning):
+    """A series on the virtual panel binned 4 (pitch 0.2 mm; or [sim] binning 2: 0.1 mm), its
+    protocol silent on the pitch; the same protocol with the pitch stated (what check_sim asks
+    for) resumed it. The file's unset pitch was compared as 0.05 mm, and the resume refused a
+    setting it never changed (``--resume --sim``: "differs in [detector] pixel_size_mm")."""
+    from acquisition.protocols.compression_series import _resume_differences, load_protocol
+
+    pitch = 0.05 * (binning or BINNING)
+
+    def sim(pixel=None):
+        def edit(d):
+            if binning:
+                d["sim"]["binning"] = binning
+            if pixel is not None:
+                d["detector"]["pixel_size_mm"] = pixel
+
+        return load_protocol(protocol(tmp_path, scene_file, "/dev/null", edit))
+
+    assert _resume_differences(sim(), sim(pitch), sim=True) == []
+    assert _resume_differences(sim(pitch), sim(), sim=True) == []
+
+
+@pytest.mark.parametrize("cols, pitch", [(1120, 0.1), (560, 0.2)])
+def test_a_lab_resume_compares_the_pitch_a_binned_shape_implies(cols, pitch):
+    """In the lab an unset pitch is the one the frames' width implies (the folder watcher's:
+    0.05 mm times the binning a 1120 or 560 column frame means), and the file records it: a
+    resume that states it is the same series; one that states 0.05 mm is not."""
+    from acquisition.protocols.compression_series import _resume_differences, load_protocol
+
+    def lab(pixel=None):
+        d = {"detector": {"folder": "frames", "shape": [cols, cols]}}
+        if pixel is not None:
+            d["detector"]["pixel_size_mm"] = pixel
+        return load_protocol(d)
+
+    assert _resume_differences(lab(), lab(pitch), sim=False) == []
+    assert _resume_differences(lab(pitch), lab(), sim=False) == []
+    assert any("pixel_size_mm" in said for said in _resume_differences(lab(), lab(0.05), sim=False))
+
+
+# -- the driver's and the transport's own lines name a hostile port as names print (s54rvacq) -----
+
+
+def test_the_driver_s_refusal_names_a_hostile_port_as_names_print(tmp_path, capsys):
+    """The driver's lines (``SourceFault: ...: X-rays not switched on: interlock open``) began
+    with the port raw: a link named with a terminal escape sent it to the terminal."""
+    from acquisition.emulators.l8121 import L8121Model, PtyServer
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    model = L8121Model(dialect="A", warmed_up=True)
+    model.open_interlock()
+    link = tmp_path / "tty\x1b[2J"
+    with PtyServer(model) as server:
+        link.symlink_to(server.url)
+        code = main(
+            [
+                "acquire",
+                "source",
+                "on",
+                "--port",
+                str(link),
+                "--dialect",
+                "A",
+                "--kv",
+                "60",
+                "--ua",
+                "250",
+                "--for",
+                "1",
+            ]
+        )
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code != 0 and "interlock" in text, text
+    assert "\x1b" not in text and shown(link) in text, text
+    assert not model.xray_on
+
+
+def test_the_transport_s_refusal_names_a_hostile_port_as_names_print(tmp_path, capsys):
+    """A port that cannot be opened: the transport's line printed the name raw."""
+    from radiokit._names import shown
+    from radiokit.cli import main
+
+    port = tmp_path / "no\x1b[2Jtty"
+    code = main(["acquire", "source", "status", "--port", str(port), "--dialect", "A"])
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert code != 0 and "\x1b" not in text, text
+    assert shown(port) in text, text
+
+
+def test_the_driver_s_api_refusal_names_a_hostile_port_as_names_print():
+    """Python API: the refusal of a warm-up time-out past its bound, nothing sent."""
+    from acquisition.l8121 import L8121
+    from radiokit._names import shown
+
+    port = "/dev/no\x1b]2;x\x07tty"
+    src = L8121(port, connect=False)
+    with pytest.raises(ValueError) as err:
+        src.warm_up(timeout_s=1e300)
+    assert str(err.value).startswith(f"{shown(port)}: ") and "\x1b" not in str(err.value)
+    assert src.port == port  # the name itself is kept: the port opened is the one typed
+
+
+def test_a_stored_protocol_refused_names_its_file_as_names_print(tmp_path, scene_file, emulator, capsys):
+    """A file whose stored protocol today's rules refuse (``settle_s = 1e300``, taken before its
+    bound): the line named the file raw, an escape in its name sent to the terminal."""
+    import tomllib
+
+    from radiokit._names import shown
+    from radiokit.cli import main
+    from radiokit.io import ExperimentWriter
+
+    model, server = emulator
+    out = tmp_path / "out" / "ser\x1b[2Jies.h5"
+    path = protocol(tmp_path, scene_file, server.url, setting("series", "settle_s", 0.0))
+    data = tomllib.loads(path.read_text())
+    data["series"]["settle_s"] = 1e300  # what the release before the bound recorded
+    with ExperimentWriter(out, shape=(PANEL, PANEL)) as w:
+        w.record_run(tomli_w.dumps(data), {})
+    code = main(["acquire", str(path), "--sim", "-o", str(out), "--resume", "-q"])
+    captured = capsys.readouterr()
+    lines = [ln for ln in (captured.out + captured.err).splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, lines
+    assert "\x1b" not in lines[0] and shown(out) in lines[0] and "[series] settle_s" in lines[0], lines
+    assert model.commands == []
+
+
+@pytest.mark.parametrize("key, value", [("timeout_s", 1e300), ("timeout_s", math.nan), ("min_interval_s", 1e300)])
+def test_the_probe_s_own_waits_have_the_configuration_s_bounds(key, value):
+    """``probe(url, timeout_s=1e300)``, the Python API's probe: each reply waited for ever (the
+    same wait as ``probe_timeout_s``, bounded there); refused before the port is opened."""
+    from acquisition.l8121 import probe
+
+    with pytest.raises(ValueError, match="probe_timeout_s" if key == "timeout_s" else key):
+        probe("/dev/no-such-port-s54", **{key: value})

@@ -255,6 +255,7 @@ class Protocol:
         if s.frames_per_step < 1:  # (darks and flats < 0: refused with every number above)
             raise ProtocolError(f"[series] frames_per_step = {s.frames_per_step!r}: expected at least 1")
         self._check_batches()
+        self._check_times()
         s.steps = _checked_steps(s.steps)
         if self.detector.kind not in ("folder", "sim"):
             raise ProtocolError(f"detector.kind {self.detector.kind!r}: expected 'folder' or 'sim'")
@@ -305,6 +306,10 @@ class Protocol:
                     "took 5 a step)"
                 )
         wait = self.detector.timeout_s
+        if wait == 0:  # every frame of a flat's batch "timed out" at once, the tube switched on for it
+            raise ProtocolError(
+                "[detector] timeout_s = 0: expected a number of seconds above 0 (the wait for each frame)"
+            )
         if wait > WATCHDOG_MAX_S:
             # each frame of a flat's or a step's batch is waited for with X-rays on, the beam
             # monitor's polls feeding the watchdog: a lost panel must end the beam no later than
@@ -312,6 +317,24 @@ class Protocol:
             raise ProtocolError(
                 f"[detector] timeout_s = {shown(wait)} s: at most {WATCHDOG_MAX_S:g} s (each frame is waited "
                 "for with X-rays on; the longest a hung run may keep them on, as [source] watchdog_s)"
+            )
+
+    def _check_times(self) -> None:
+        """Each wait and estimate of the protocol's own within :data:`PROTOCOL_TIME_LIMITS` (the
+        source's are :data:`acquisition.l8121.TIME_LIMITS`'), and a frame file's settle within the
+        wait for it."""
+        for (section, key), limit in PROTOCOL_TIME_LIMITS.items():
+            value = getattr(getattr(self, section), key)  # a finite number >= 0 (_check_numbers)
+            if value > limit.max_s:
+                raise ProtocolError(f"[{section}] {key} = {shown(value)} s: at most {limit.max_s:g} s ({limit.why})")
+        d = self.detector
+        if d.settle_s >= d.timeout_s:
+            # a file is taken once it has held still for settle_s, and waited for timeout_s: one
+            # that settles no sooner than the wait ends timed out every frame, X-rays on
+            raise ProtocolError(
+                f"[detector] settle_s = {shown(d.settle_s)} s: expected less than [detector] timeout_s = "
+                f"{shown(d.timeout_s)} s (a frame file is taken once it has held still this long, and "
+                "waited for no longer than timeout_s)"
             )
 
     def settle_s(self, virtual: bool) -> float:
@@ -539,6 +562,51 @@ _BATCH_COUNTS = (
 
 #: The longest wait for a poll before the guardian switches off (``[source] watchdog_s``).
 WATCHDOG_MAX_S = 600.0
+
+
+@dataclass(frozen=True)
+class _TimeLimit:
+    max_s: float
+    why: str
+
+
+#: L8121.md: dialect B's DAG names a warm-up mode "after 8 h idle", and a series warms the tube
+#: up once, at its start: a step reached after longer with the tube off found it needing a
+#: warm-up it never gets (``on()`` refuses: "warm-up needed").
+_IDLE_MAX_S = 8 * 3600.0
+_IDLE_WHY = "the tube is off meanwhile, and after 8 h idle the L8121 needs a warm-up the series takes only at its start"
+
+#: ``acquisition.l8121.TIME_LIMITS``' bounds this table's estimates stand for (equal, tested):
+#: not imported, as this module imports the driver only when a run needs it.
+_WARMUP_MAX_S = 7200.0  # warmup_timeout_s: no run waits for a longer warm-up
+_RAMP_MAX_S = 60.0  # stable_timeout_s: no run waits longer for the beam to ramp
+
+#: The bound of every wait and estimate a protocol's own sections hold (the source's driver
+#: times: ``acquisition.l8121.TIME_LIMITS``; ``[detector] timeout_s``: :data:`WATCHDOG_MAX_S`).
+#: Why: 1e300 passed "finite", and a settle that long was a series stalled for ever after its
+#: darks and flats; an estimate that long a dry run's plan of ``inf`` minutes. Each bound is the
+#: longest the run could use: past it the run fails (or the plan says what cannot happen).
+PROTOCOL_TIME_LIMITS: dict[tuple[str, str], _TimeLimit] = {
+    # gel relaxation, tube off: hours are legitimate, past the idle warm-up they are not
+    ("series", "settle_s"): _TimeLimit(_IDLE_MAX_S, _IDLE_WHY),
+    ("sim", "settle_s"): _TimeLimit(_IDLE_MAX_S, "a rehearsal of the lab's [series] settle_s, bounded as it is"),
+    ("frame", "move_estimate_s"): _TimeLimit(_IDLE_MAX_S, _IDLE_WHY),
+    ("source", "warmup_estimate_s"): _TimeLimit(
+        _WARMUP_MAX_S, "the longest warm-up a run waits for, [source] warmup_timeout_s's bound"
+    ),
+    ("sim", "warmup_s"): _TimeLimit(
+        _WARMUP_MAX_S, "the longest warm-up a run waits for, [source] warmup_timeout_s's bound"
+    ),
+    ("sim", "ramp_s"): _TimeLimit(
+        _RAMP_MAX_S, "the longest a run waits for the beam to ramp, stable_timeout_s's bound"
+    ),
+    # C7942.md: the slowest read-out, external trigger at 0.1 fps, is a 10 s frame
+    ("detector", "frame_period_s"): _TimeLimit(
+        WATCHDOG_MAX_S, "the longest wait for a frame, [detector] timeout_s's bound; the C7942's slowest is 10 s"
+    ),
+    ("sim", "frame_period_s"): _TimeLimit(WATCHDOG_MAX_S, "the longest wait for a frame, [detector] timeout_s's bound"),
+    # ([detector] settle_s: below [detector] timeout_s, Protocol._check_times)
+}
 
 _SECTIONS = {
     "source": SourceSettings,
@@ -1159,16 +1227,34 @@ def _setting(p: Protocol, section: str, key: str):
 
 def _same_setting(section: str, key: str, a, b) -> bool:
     """Whether a file's setting ``a`` and the resume's ``b`` are the same, however written: a
-    dialect left to detection ("auto", or unset) matches the one named, in either case; an unset
-    pitch is the 0.05 mm the run assumes (:func:`_open_experiment`)."""
+    dialect left to detection ("auto", or unset) matches the one named, in either case (the
+    pitch: :func:`_recorded_pitch`)."""
     if (section, key) == ("source", "dialect"):
         a, b = (None if v is None or str(v).lower() == "auto" else str(v).upper() for v in (a, b))
         return a is None or b is None or a == b
-    if (section, key) == ("detector", "pixel_size_mm"):
-        from radiokit.io import C7942_PIXEL_SIZE_MM
-
-        a, b = (C7942_PIXEL_SIZE_MM if v is None else v for v in (a, b))
     return a == b
+
+
+def _recorded_pitch(p: Protocol, sim: bool) -> float | None:
+    """The pitch a run of ``p`` records (:func:`_open_experiment`, the detector's): the stated
+    one, else the virtual panel's at its binning (``sim``), else the one the lab's frames imply
+    (:func:`acquisition.detector.implied_pixel_size_mm`). Why: an unset pitch was compared as
+    0.05 mm, and a resume that stated the 0.2 mm a binned panel's file recorded was refused.
+    None when the scene cannot be read (then the scenes differ, and that is said)."""
+    d = p.detector
+    if d.pixel_size_mm is not None:
+        return d.pixel_size_mm
+    if sim and d.kind == "sim":
+        from sim.scene import Detector, load_scene
+
+        try:
+            scene = load_scene(p.sim.scene)
+            return Detector(scene.detector.preset, p.sim.binning or scene.detector.binning).pixel_size_mm
+        except (ValueError, OSError):
+            return None
+    from acquisition.detector import implied_pixel_size_mm
+
+    return implied_pixel_size_mm(d.preset, d.shape)
 
 
 def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
@@ -1195,7 +1281,7 @@ def _stored_protocol(path, text: str, now: Protocol) -> Protocol:
             target[key] = old[key]
         else:
             target.pop(key, None)
-    return load_protocol(merged, where=f"{path} (its stored protocol)")
+    return load_protocol(merged, where=f"{shown_name(path)} (its stored protocol)")
 
 
 def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]:
@@ -1203,7 +1289,12 @@ def _resume_differences(stored: Protocol, now: Protocol, sim: bool) -> list[str]
     said = []
     for section, key in _RESUME_SAME + (_RESUME_SAME_SIM if sim else ()):
         a, b = _setting(stored, section, key), _setting(now, section, key)
-        if not _same_setting(section, key, a, b):
+        if (section, key) == ("detector", "pixel_size_mm"):
+            was, will = _recorded_pitch(stored, sim), _recorded_pitch(now, sim)
+            same = None not in (was, will) and math.isclose(was, will, rel_tol=1e-9)  # (0.05 * 3, 0.15)
+        else:
+            same = _same_setting(section, key, a, b)
+        if not same:
             then = "not set in the file" if a is None else f"{a!r} in the file"
             said.append(f"[{section}] {key} = {'unset' if b is None else repr(b)} ({then})")
     return said
@@ -1901,7 +1992,7 @@ def _what_to_take(p: Protocol, out: Path, *, resume, overwrite, sim, devices):
         return resume, done, Result(str(out), 0, n, 0.0, 0.0, "done", resumed=True, already_complete=True)
     if not resume and out.exists() and not overwrite:
         raise FileExistsError(
-            f"{out}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
+            f"{shown_name(out)}: exists; raw data is never overwritten (--resume completes it; --overwrite replaces it)"
         )
     if not sim and devices is None:
         check_lab(p)  # before the notebook: a refused protocol leaves no file behind
@@ -1939,10 +2030,10 @@ def _open_notebook(out: Path) -> logging.Handler:
     try:
         notebook = _Notebook(out.with_suffix(".log"), encoding="utf-8")
     except OSError as exc:  # the first file a run writes: say which, and that nothing was sent
-        where = f"no folder {out.parent}" if not out.parent.is_dir() else exc.strerror or str(exc)
+        where = f"no folder {shown_name(out.parent)}" if not out.parent.is_dir() else exc.strerror or str(exc)
         raise OSError(
             exc.errno or errno.EIO,
-            f"{out}: cannot write the experiment file's lab notebook {out.with_suffix('.log').name} "
+            f"{shown_name(out)}: cannot write the experiment file's lab notebook {shown_name(out.with_suffix('.log').name)} "
             f"({where}); nothing was sent to the devices",
         ) from None
     notebook.setLevel(logging.DEBUG)
