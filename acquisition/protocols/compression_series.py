@@ -546,7 +546,8 @@ def _check_source(s: SourceSettings) -> None:
 #: batch). Why this ceiling: a batch is one stretch of the run with nobody needed -- for the flats
 #: and each step one continuous exposure. At the C7942's full resolution (2 frames a second, a
 #: 2240 x 2240 uint16 frame of 10 MB, C7942.md) 10 000 frames are 83 min of beam and 100 GB; at
-#: its fastest read-out (4 x 4 binning, 9 a second) still 18 min. That is 2000 times the paper's
+#: its fastest read-out (4 x 4 binning, 9 a second) still 18 min; on the external trigger's slowest
+#: (0.1 a second) 28 h, a bound no lab meets by accident either. That is 2000 times the paper's
 #: 5 frames a step, and averaging that many already lowers a frame's noise a hundredfold. Past
 #: it a count is a typo (an extra zero or three), which was taken: the run warned that the disk
 #: would fill only after connecting, then warmed the tube up and exposed until it did.
