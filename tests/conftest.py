@@ -344,6 +344,31 @@ def _pipe_holds_bytes(path) -> bool:
         return False
 
 
+class StartMissed(AssertionError):
+    """``guardian_held_at_start`` stopped the guardian only after it had opened its port (and so,
+    perhaps, said READY): the window the test is about was missed, not tested."""
+
+
+def _holds_its_port(guardian) -> bool:
+    """Whether the guardian ``guardian`` has opened a terminal (its port) of its own: a descriptor
+    on /dev/pts or /dev/tty* other than the port's lock it inherited (``--lock-fd N``), which it
+    holds from its first instruction. It says READY only after that open."""
+    try:
+        words = (Path(f"/proc/{guardian}") / "cmdline").read_bytes().split(b"\0")
+        fds = list((Path(f"/proc/{guardian}") / "fd").iterdir())
+    except OSError:
+        return False
+    lock = words[words.index(b"--lock-fd") + 1].decode() if b"--lock-fd" in words else None
+    for fd in fds:
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if fd.name != lock and target.startswith(("/dev/pts/", "/dev/tty")):
+            return True
+    return False
+
+
 @contextlib.contextmanager
 def guardian_held_at_start(proc, acted, timeout_s=60.0):
     """Hold the X-ray guardian that ``proc`` starts (SIGSTOP as soon as it appears in /proc, before
@@ -363,6 +388,12 @@ def guardian_held_at_start(proc, acted, timeout_s=60.0):
     assert guardian is not None, f"no X-ray guardian started by pid {proc.pid}"
     os.kill(guardian, signal.SIGSTOP)
     try:
+        # On a loaded machine this process may not run for a while between two scans, and the
+        # guardian then gets through its whole start first: caught after READY, ``proc`` is past
+        # the wait for it (in its connect), and what the body does tests another moment (a
+        # fresh-clone `make test` at load 11 failed so: the interrupt landed in connect's TYP)
+        if _holds_its_port(guardian):
+            raise StartMissed(f"the X-ray guardian (pid {guardian}) had opened its port when stopped")
         yield guardian
         while time.monotonic() < end and proc.poll() is None and not acted():
             if _pipe_holds_bytes(f"/proc/{guardian}/fd/0"):

@@ -374,28 +374,40 @@ def test_a_warm_up_interrupted_while_its_guardian_starts_ends_with_the_guardian(
     import sys
     from pathlib import Path
 
-    from conftest import guardian_held_at_start
+    from conftest import StartMissed, guardian_held_at_start
 
     from acquisition.guardian import TUBE_WARNING
 
-    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
-    with PtyServer(model) as server:
-        src = L8121(server.url, dialect="B", **FAST)
-        src.on(60, 250)
-        src.detach()
-        n = len(model.commands)
-        cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
-        cmd += ["--kv", "60", "--ua", "250", "--reply-timeout", "1"] + ([] if given == "auto" else ["--dialect", given])
-        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # a guardian caught only after it had opened its port (a loaded machine) tested another
+    # moment: that run is ended and not judged, and the scenario run again, a few times at most
+    for _ in range(5):
+        model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+        with PtyServer(model) as server:
+            src = L8121(server.url, dialect="B", **FAST)
+            src.on(60, 250)
+            src.detach()
+            n = len(model.commands)
+            cmd = [sys.executable, "-m", "radiokit.cli", "acquire", "source", "warm-up", "--port", server.url]
+            cmd += ["--kv", "60", "--ua", "250", "--reply-timeout", "1"]
+            cmd += [] if given == "auto" else ["--dialect", given]
+            p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
-        def printed():
-            return bool(select.select([p.stderr], [], [], 0)[0])
+            def printed(p=p):
+                return bool(select.select([p.stderr], [], [], 0)[0])
 
-        with guardian_held_at_start(p, printed) as guardian:
-            p.send_signal(signal.SIGINT)
-        code = p.wait(timeout=120)
-        guardian_left = Path(f"/proc/{guardian}").exists()  # reaped by the command, or still running
-        err = p.stderr.read()  # to the end: the guardian writes to the same stderr
+            try:
+                with guardian_held_at_start(p, printed) as guardian:
+                    p.send_signal(signal.SIGINT)
+            except StartMissed:
+                p.send_signal(signal.SIGINT)
+                p.communicate(timeout=120)
+                continue
+            code = p.wait(timeout=120)
+            guardian_left = Path(f"/proc/{guardian}").exists()  # reaped by the command, or still running
+            err = p.stderr.read()  # to the end: the guardian writes to the same stderr
+            break
+    else:
+        pytest.fail("the X-ray guardian was caught only after it had opened its port, 5 times")
     lines = err.strip().splitlines()
     assert not guardian_left, err
     assert code == 130 and lines[-1].startswith("stopped by SIGINT"), (code, err)
