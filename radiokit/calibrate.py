@@ -726,27 +726,12 @@ class Calibration:
         ``line_fraction`` of their pixels are flagged.
         """
         if bit_depth is None:  # the frames' own word for their ADC, where they give one
-            bit_depth = declared_bit_depth(
-                {
-                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth")
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            bit_depth = declared_bit_depth(_frames_say(darks, flats, lambda meta: meta.get("bit_depth")))
         if signed is None:
-            signed = declared_signed(
-                {
-                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth_signed")
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            signed = declared_signed(_frames_say(darks, flats, lambda meta: meta.get("bit_depth_signed")))
         low, top = (0, None) if bit_depth is None else declared_range(bit_depth, signed)  # the file's word
         if layout is None:  # as the frames' files were read, where the frames say
-            layout = declared_layout(
-                {
-                    f"{what} {getattr(f, 'path', '')}": pixel_layout(f.meta) if hasattr(f, "meta") else None
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            layout = declared_layout(_frames_say(darks, flats, pixel_layout))
         if scaling is None:
             scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
@@ -2174,14 +2159,18 @@ def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) ->
     }
 
 
+def _frames_say(darks, flats, said) -> dict:
+    """What each of the darks' and flats' files says, ``said(meta)`` of a :class:`radiokit.io.Frames`
+    (None for an array: it says nothing), by its name, as the ``declared_*`` functions take it."""
+    return {
+        f"{what} {getattr(f, 'path', '')}": said(f.meta) if hasattr(f, "meta") else None
+        for what, f in (("darks", darks), ("flats", flats))
+    }
+
+
 def _frames_scaling(darks, flats) -> dict:
     """The scaling the darks' and flats' :class:`radiokit.io.Frames` share (:func:`declared_scaling`)."""
-    return declared_scaling(
-        {
-            f"{what} {getattr(f, 'path', '')}": value_scaling(getattr(f, "meta", {}))
-            for what, f in (("darks", darks), ("flats", flats))
-        }
-    )
+    return declared_scaling(_frames_say(darks, flats, value_scaling))
 
 
 def declared_scaling(scalings: dict) -> dict:
