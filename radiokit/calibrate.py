@@ -1597,13 +1597,14 @@ def _check_lit_darks(darks, flats, flat: float, eps) -> None:
         # flats taken with the beam off span their darks' noise, as a dark does -- not an image
         steps = np.abs(np.diff(frame.astype(np.float64), axis=-1))
         noise = float(np.median(steps[np.isfinite(steps)])) / 0.954 if steps.size else 0.0
+        if room <= eps or hi - lo <= max(LIT_SPAN * room, LIT_NOISE * noise):
+            continue  # a dark's span (the flats' pattern judged only past it)
         # a float64 difference: an unsigned frame less its flat would wrap
         beyond = frame.astype(np.float64) - reference
         beyond = beyond[np.isfinite(beyond)]
         own = float(np.subtract(*np.percentile(beyond, (95, 5)))) if beyond.size else 0.0
         under = -float(np.median(beyond)) if beyond.size else 0.0
-        beyond_flats = own > LIT_SPAN * room or under < LIT_GAP * room
-        if room > eps and hi - lo > max(LIT_SPAN * room, LIT_NOISE * noise) and beyond_flats:
+        if own > LIT_SPAN * room or under < LIT_GAP * room:
             raise FrameLevelError(
                 "dark",
                 i,
