@@ -726,27 +726,12 @@ class Calibration:
         ``line_fraction`` of their pixels are flagged.
         """
         if bit_depth is None:  # the frames' own word for their ADC, where they give one
-            bit_depth = declared_bit_depth(
-                {
-                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth")
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            bit_depth = declared_bit_depth(_frames_say(darks, flats, lambda meta: meta.get("bit_depth")))
         if signed is None:
-            signed = declared_signed(
-                {
-                    f"{what} {getattr(f, 'path', '')}": getattr(f, "meta", {}).get("bit_depth_signed")
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            signed = declared_signed(_frames_say(darks, flats, lambda meta: meta.get("bit_depth_signed")))
         low, top = (0, None) if bit_depth is None else declared_range(bit_depth, signed)  # the file's word
         if layout is None:  # as the frames' files were read, where the frames say
-            layout = declared_layout(
-                {
-                    f"{what} {getattr(f, 'path', '')}": pixel_layout(f.meta) if hasattr(f, "meta") else None
-                    for what, f in (("darks", darks), ("flats", flats))
-                }
-            )
+            layout = declared_layout(_frames_say(darks, flats, pixel_layout))
         if scaling is None:
             scaling = _frames_scaling(darks, flats)
         th = Thresholds.from_kwargs(**thresholds)
@@ -1612,13 +1597,14 @@ def _check_lit_darks(darks, flats, flat: float, eps) -> None:
         # flats taken with the beam off span their darks' noise, as a dark does -- not an image
         steps = np.abs(np.diff(frame.astype(np.float64), axis=-1))
         noise = float(np.median(steps[np.isfinite(steps)])) / 0.954 if steps.size else 0.0
+        if room <= eps or hi - lo <= max(LIT_SPAN * room, LIT_NOISE * noise):
+            continue  # a dark's span (the flats' pattern judged only past it)
         # a float64 difference: an unsigned frame less its flat would wrap
         beyond = frame.astype(np.float64) - reference
         beyond = beyond[np.isfinite(beyond)]
         own = float(np.subtract(*np.percentile(beyond, (95, 5)))) if beyond.size else 0.0
         under = -float(np.median(beyond)) if beyond.size else 0.0
-        beyond_flats = own > LIT_SPAN * room or under < LIT_GAP * room
-        if room > eps and hi - lo > max(LIT_SPAN * room, LIT_NOISE * noise) and beyond_flats:
+        if own > LIT_SPAN * room or under < LIT_GAP * room:
             raise FrameLevelError(
                 "dark",
                 i,
@@ -2174,14 +2160,18 @@ def _provenance(darks, flats, dark_times, flat_times, mask, n_flat_saturated) ->
     }
 
 
+def _frames_say(darks, flats, said) -> dict:
+    """What each of the darks' and flats' files says, ``said(meta)`` of a :class:`radiokit.io.Frames`
+    (None for an array: it says nothing), by its name, as the ``declared_*`` functions take it."""
+    return {
+        f"{what} {getattr(f, 'path', '')}": said(f.meta) if hasattr(f, "meta") else None
+        for what, f in (("darks", darks), ("flats", flats))
+    }
+
+
 def _frames_scaling(darks, flats) -> dict:
     """The scaling the darks' and flats' :class:`radiokit.io.Frames` share (:func:`declared_scaling`)."""
-    return declared_scaling(
-        {
-            f"{what} {getattr(f, 'path', '')}": value_scaling(getattr(f, "meta", {}))
-            for what, f in (("darks", darks), ("flats", flats))
-        }
-    )
+    return declared_scaling(_frames_say(darks, flats, value_scaling))
 
 
 def declared_scaling(scalings: dict) -> dict:

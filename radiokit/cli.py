@@ -642,8 +642,8 @@ def _stack(
 ) -> np.ndarray:
     """The frames of ``paths`` (those of image_key ``key`` where keyed) as one stack; ``origins``,
     when given, gets each frame's (file, index in it), ``bit_depths`` each file's declared ADC
-    bits (``meta["bit_depth"]``, None where it says nothing; keyed ``(file, "signed")``, whether
-    they are signed, ``meta["bit_depth_signed"]``), ``layouts`` where each file's
+    bits and whether they are signed (``meta["bit_depth"]`` and ``meta["bit_depth_signed"]``, None
+    where it says nothing), ``layouts`` where each file's
     pixels lie on the sensor as read (:func:`radiokit.calibrate.pixel_layout`), ``scalings`` each
     file's :func:`radiokit.calibrate.value_scaling`, ``inputs`` each file's (and dataset's)
     :class:`radiokit.calibrate.CalibrationInput` (``hints["option"]``: the option that named its
@@ -668,8 +668,7 @@ def _stack(
                     raise FormatError(p, f"frames are {src.frame_shape}, those of {shown(first[0])} {first[1]}")
                 total += len(src) * src.frame_bytes
                 if bit_depths is not None:  # (and whether its counts are signed: a DICOM's word)
-                    bit_depths[str(p)] = src.meta.get("bit_depth")
-                    bit_depths[str(p), "signed"] = src.meta.get("bit_depth_signed")
+                    bit_depths[str(p)] = (src.meta.get("bit_depth"), src.meta.get("bit_depth_signed"))
                 if scalings is not None:  # its values' scaling (a GDAL or CF file's): the level's unit
                     scalings[str(p)] = value_scaling(src.meta)
                 if layouts is not None:
@@ -704,14 +703,14 @@ def _hdf5_name(path) -> None:
 
 def _declared(bits: dict, layouts: dict, scalings: dict) -> dict:
     """What the dark and flat files say of themselves, as :meth:`Calibration.from_frames` takes it:
-    their bit depth (an experiment's, a TIFF's 12 or 14 bits) before the guess, where their pixels
-    lie, and their values' scaling (a GDAL or CF file's: the saturation level's unit)."""
+    their bit depth (an experiment's, a TIFF's 12 or 14 bits; a DICOM's, signed or not) before the
+    guess, where their pixels lie, and their values' scaling (a GDAL or CF file's: the saturation
+    level's unit)."""
     from radiokit.calibrate import declared_bit_depth, declared_layout, declared_scaling, declared_signed
 
-    signs = {name: v for (name, _), v in ((k, v) for k, v in bits.items() if isinstance(k, tuple))}
     return {
-        "bit_depth": declared_bit_depth({k: v for k, v in bits.items() if isinstance(k, str)}),
-        "signed": declared_signed(signs),
+        "bit_depth": declared_bit_depth({name: depth for name, (depth, _) in bits.items()}),
+        "signed": declared_signed({name: signed for name, (_, signed) in bits.items()}),
         "layout": declared_layout(layouts),
         "scaling": declared_scaling(scalings),
     }

@@ -54,8 +54,7 @@ def png_header(path) -> dict:
             raise FormatError(path, f"no PNG signature ({PNG_MAGIC!r}): not a PNG file")
         if len(head) < 33 or head[12:16] != b"IHDR":
             raise FormatError(path, "a PNG without its IHDR header first: truncated or corrupt")
-        _check_ihdr(path, head)
-        width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", head[16:29])
+        width, height, depth, colour, interlace = _check_ihdr(path, head)
         out = {"width": width, "height": height, "depth": depth, "colour": colour, "trns": False, "sbit": None}
         out |= {"interlaced": bool(interlace), "file_bytes": size}
         pos = 33
@@ -80,8 +79,9 @@ _PNG_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: 
 _LIBPNG_MOST = 1_000_000
 
 
-def _check_ihdr(path, head: bytes) -> None:
-    """Refuse in one line an IHDR libpng refuses (its 13 bytes' methods, a colour type and bit
+def _check_ihdr(path, head: bytes) -> tuple[int, int, int, int, int]:
+    """IHDR's width, height, bit depth, colour type and interlace method; refused in one line
+    where libpng refuses it (its 13 bytes' methods, a colour type and bit
     depth PNG does not pair, past libpng's 1 000 000 columns or rows). Why: libpng printed
     "libpng warning: ..." and "libpng error: Invalid IHDR data" on the process's stderr, and
     radiokit then blamed truncation."""
@@ -99,7 +99,7 @@ def _check_ihdr(path, head: bytes) -> None:
     elif max(width, height) > _LIBPNG_MOST:
         fault = f"{width} x {height} pixels, past the {_LIBPNG_MOST} columns or rows OpenCV's libpng reads"
     else:
-        return
+        return width, height, depth, colour, interlace
     raise FormatError(path, f"a PNG whose IHDR is invalid ({fault})")
 
 
@@ -116,10 +116,10 @@ def png_read_bytes(header: dict) -> int:
     inflated piece while it builds it, then with the pixels OpenCV decodes (:func:`png_decoded_bytes`).
     Why not the pixels alone: the built PNG is about their size (16-bit), twice it a pixel wide
     (a filter byte a sample), and a PNG just under the budget took twice the budget."""
-    need = png_pixel_bytes(header, header.get("interlaced", False))
+    need = png_pixel_bytes(header)
     built = need + 5 * -(-need // _STORED_BLOCK) + 64  # (the chunks' headers, the zlib header and Adler-32)
     # (a piece zlib gives is built in blocks then joined: twice its size at most)
-    building = header.get("file_bytes", 0) + 2 * min(need, _INFLATE_PIECE) + _FED
+    building = header["file_bytes"] + 2 * min(need, _INFLATE_PIECE) + _FED
     return built + max(building, png_decoded_bytes(header))
 
 
@@ -152,13 +152,13 @@ _STORED_BLOCK = 0xFFFF
 _INFLATE_PIECE, _FED = 1 << 20, 1 << 16
 
 
-def _png_rows(header: dict, interlaced: bool) -> list[tuple[int, int, int]]:
+def _png_rows(header: dict) -> list[tuple[int, int, int]]:
     """Where IDAT's inflated stream holds its rows: (first byte, rows, bytes a row) of each
     Adam7 pass (one pass where not interlaced), each row a filter byte and its samples packed
     to whole bytes."""
     w, h = header["width"], header["height"]
     bits = _PNG_SAMPLES[header["colour"]] * header["depth"]
-    passes = _ADAM7 if interlaced else ((0, 0, 1, 1),)
+    passes = _ADAM7 if header["interlaced"] else ((0, 0, 1, 1),)
     out, start = [], 0
     for y, x, dy, dx in passes:
         rows, cols = -(-(h - y) // dy), -(-(w - x) // dx)
@@ -168,9 +168,9 @@ def _png_rows(header: dict, interlaced: bool) -> list[tuple[int, int, int]]:
     return out
 
 
-def png_pixel_bytes(header: dict, interlaced: bool) -> int:
+def png_pixel_bytes(header: dict) -> int:
     """The bytes IDAT's zlib stream inflates to (:func:`_png_rows`)."""
-    return sum(rows * length for _, rows, length in _png_rows(header, interlaced))
+    return sum(rows * length for _, rows, length in _png_rows(header))
 
 
 def _check_filters(path, layout, at: int, data) -> None:
@@ -228,7 +228,7 @@ def _inflated(path, need: int, idat):
 _CHUNK_MOST = 2**31 - 1
 
 
-def _stored_png(path, header: dict, interlaced: bool, head: bytes, chunks: list, idat) -> np.ndarray:
+def _stored_png(path, header: dict, head: bytes, chunks: list, idat) -> np.ndarray:
     """The PNG libpng is given: the signature and IHDR (``head``), the other pixel ``chunks``
     (PLTE, tRNS) and IDATs holding the image's filtered rows, inflated from the file's stream
     (``idat``, :func:`_inflated`) straight into stored deflate blocks, then IEND. Why: radiokit
@@ -237,7 +237,7 @@ def _stored_png(path, header: dict, interlaced: bool, head: bytes, chunks: list,
     The buffer is the rows and a few bytes a block: no other copy of them is held. Whole blocks
     an IDAT, as many as :data:`_CHUNK_MOST` holds: one IDAT of a 16-bit image past 32768 x 32768
     (2 GiB of rows) was past it."""
-    layout = _png_rows(header, interlaced)
+    layout = _png_rows(header)
     need = sum(rows * length for _, rows, length in layout)
     stride = 5 + _STORED_BLOCK  # a block's header and its bytes
     blocks = max(1, -(-need // _STORED_BLOCK))
@@ -335,13 +335,12 @@ def decode_png(path, header: dict) -> np.ndarray:
     raw = np.fromfile(path, np.uint8)
     view = memoryview(raw)
     spans = check_png_chunks(path, view)
-    interlaced = bool(raw[28])  # IHDR's last byte (png_header read its others)
     # the pixels' chunks alone: libpng inflates text and ICC chunks (a 100 KB zTXt may hold 100 MB)
     # and prints its own "libpng warning: ..." lines on what it finds in them (iCCP: "known
     # incorrect sRGB profile"); gamma is a display's business, never applied to the values
     head = bytes(view[: spans[0][2]])  # the signature and IHDR (check_png_chunks: IHDR is the first chunk)
     kept = _palette_chunks(view, spans, header["colour"])
-    raw = _stored_png(path, header, interlaced, head, kept, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
+    raw = _stored_png(path, header, head, kept, (view[a + 8 : b - 4] for k, a, b in spans if k == b"IDAT"))
     del view  # (the file's bytes: let go before the pixels are decoded beside the PNG built of them)
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:

@@ -223,25 +223,24 @@ def describe(header: dict) -> str:
     return f"{what[header['codec']]} {process}, {sign}{header['precision']}-bit, {header['components']} component(s), {loss}"
 
 
-def decode(buf, header: dict) -> np.ndarray:
-    """The stream's pixels by imagecodecs, as the header said: libjpeg-turbo for every JPEG process
-    (8- and 12-bit DCT, lossless to 16 bits), its lossless-JPEG decoder where libjpeg-turbo refuses
-    one (an older build, a predictor or precision it lacks), CharLS for JPEG-LS, OpenJPEG for JPEG
-    2000 and HTJ2K."""
+def decode(path, buf, header: dict, where: str = "") -> np.ndarray:
+    """The stream's pixels by imagecodecs, as the header said (libjpeg-turbo 3 for every JPEG
+    process: 8- and 12-bit DCT, lossless to 16 bits; CharLS for JPEG-LS; OpenJPEG for JPEG 2000
+    and HTJ2K), refused in one line naming the file where they cannot be decoded or are not the
+    image the header declared."""
     import imagecodecs
 
-    if header["codec"] == "jpegls":
-        return imagecodecs.jpegls_decode(buf)
-    if header["codec"] == "jpeg2k":
-        return imagecodecs.jpeg2k_decode(buf)
+    codec = {"jpegls": imagecodecs.jpegls_decode, "jpeg2k": imagecodecs.jpeg2k_decode}.get(
+        header["codec"], imagecodecs.jpeg8_decode
+    )
     try:
-        return imagecodecs.jpeg8_decode(buf)
-    except Exception as exc:
-        # libjpeg-turbo before 3.0 has no lossless process ("Unsupported JPEG process: SOF type
-        # 0xc3"); any other error stands (ljpeg_decode returns a corrupt stream's image silently)
-        if not header["lossless"] or "Unsupported JPEG process" not in str(exc):
-            raise
-        return imagecodecs.ljpeg_decode(buf)
+        data = codec(buf)
+    except Exception as exc:  # imagecodecs' codec errors: one class per codec
+        raise FormatError(
+            path, f"{where}a {describe(header)} image that cannot be decoded: {' '.join(str(exc).split())}"
+        ) from None
+    check_decoded(path, data, header, where)
+    return data
 
 
 def check_complete(path, buf, header: dict, where: str = "") -> None:
@@ -336,16 +335,10 @@ def grey(path, data: np.ndarray, header: dict) -> np.ndarray:
 
 def decode_file(path, header: dict) -> np.ndarray:
     """A JPEG or JPEG 2000 file's one greyscale image, in one line naming the file where it cannot be."""
-    buf = np.fromfile(path, np.uint8)
-    check_complete(path, buf.tobytes(), header)
-    try:
-        data = decode(buf, header)
-    except Exception as exc:  # imagecodecs' codec errors: one class per codec
-        raise FormatError(
-            path, f"a {describe(header)} image that cannot be decoded: {' '.join(str(exc).split())}"
-        ) from None
-    check_decoded(path, data, header)
-    return grey(path, data, header)
+    with open(path, "rb") as fh:
+        buf = fh.read()  # (bytes: the end marker's search and the decoder both read it, no copy)
+    check_complete(path, buf, header)
+    return grey(path, decode(path, buf, header), header)
 
 
 # -- a compressed DICOM's frames ------------------------------------------------------------------
@@ -470,13 +463,7 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
         warn_lossy(
             path, f"its frames are {describe(header)} streams, though its transfer syntax {syntax.name} says lossless"
         )
-    try:
-        data = decode(buf, header)
-    except Exception as exc:  # imagecodecs' codec errors: one class per codec
-        raise FormatError(
-            path, f"frame {i} ({describe(header)}) cannot be decoded: {' '.join(str(exc).split())}"
-        ) from None
-    check_decoded(path, data, header, f"frame {i} ")
+    data = decode(path, buf, header, f"frame {i} is ")
     dtype = geometry["dtype"].newbyteorder("=")
     if dtype.kind == "i" and data.dtype.kind == "u":
         # the sign bit is BitsStored's top where the stream is wider (CharLS and OpenJPEG encode
