@@ -5894,6 +5894,18 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
     assert "X-rays switched off" in str(caught.value) and not model.xray_on
 
 
+def _clock_per_current_reading(model, dialect: str, now: list, step: float) -> None:
+    """Move ``model``'s clock (``now[0]``) on by ``step`` after each reading of its current (B's
+    ``SCU``, A's ``SAR``): a ramp read in steps, with no timing in the test."""
+    word = "SCU" if dialect == "B" else "SAR"
+
+    def tick():
+        now[0] += step
+        model.inject_after(word, tick)
+
+    model.inject_after(word, tick)
+
+
 class _JitteryMeter(L8121Model):
     """A unit whose current meter reads ``jitter`` µA either side of the tube's current, by turns
     (reading k of the model's clock, k = t / ``step``). A fake of the meter's noise: the emulator
@@ -5923,17 +5935,12 @@ def test_a_ramp_whose_readings_jitter_within_the_tolerance_is_not_called_dropped
     now = [0.0]
     step, jitter, tol = 0.1, 2.4, 2.5
     model = _JitteryMeter(jitter=jitter, step=step, dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
-    word = "SCU" if dialect == "B" else "SAR"
-
-    def tick():
-        now[0] += step
-        model.inject_after(word, tick)
 
     with (
         PtyServer(model) as server,
         driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0, ua_tolerance=tol) as src,
     ):
-        model.inject_after(word, tick)
+        _clock_per_current_reading(model, dialect, now, step)
         reading = src.on(60, 10)
         try:
             assert abs(reading["current_ua"] - 10) <= tol, reading
@@ -5981,17 +5988,12 @@ def test_a_change_while_on_that_ramps_again_from_zero_is_not_called_dropped(dial
     now = [0.0]
     step = 0.1
     model = _ReRampingUnit(fall_s=0.5, dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
-    word = "SCU" if dialect == "B" else "SAR"
-
-    def tick():
-        now[0] += step
-        model.inject_after(word, tick)
 
     with (
         PtyServer(model) as server,
         driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0) as src,
     ):
-        model.inject_after(word, tick)
+        _clock_per_current_reading(model, dialect, now, step)
         src.on(60, 250)
         try:
             assert src.set_values(70, 250) == (70, 250)
