@@ -1779,7 +1779,10 @@ class L8121:
         ``STS`` or kept in :attr:`off_failed`, before it raises (:meth:`_off_after_refused_connect`).
         An interrupt (``KeyboardInterrupt``, a stop signal) after the probe read X-rays on still
         sends ``XOF`` and confirms it before it propagates, carrying ``tube_state`` (confirmed) or
-        ``off_failed``; every interrupt here carries ``probe_sent`` (False: nothing was sent).
+        ``off_failed``; so does one, in a session that controls the tube, once the port is open
+        and before any ``STS`` read the tube off (:meth:`_off_for_unread_interrupt`: a crashed
+        session may have left it on). Every interrupt here carries ``probe_sent`` (False: nothing
+        was sent), and leaves the link closed.
         """
         if self.is_connected:
             return self
@@ -1797,8 +1800,9 @@ class L8121:
         else:
             self._transport = self.url
         self.port_opened = True
-        self._give_grammar(self._transport)
         try:
+            # inside the try: a stop here leaves the link open and the tube untouched otherwise
+            self._give_grammar(self._transport)
             self._check_identity()
             if self._read("state").emitting:
                 if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
@@ -1817,6 +1821,15 @@ class L8121:
                     self._may_be_on = True
             elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
                 logger.critical("%s", self.unverified_warning(self._last_state))
+            # inside the try too: a stop here, once connect is raising, leaves its caller no driver
+            # to close (``L8121(url)`` returns none), so it is switched off here or not at all
+            logger.info(
+                "%s: %s connected (dialect %s, %d baud)",
+                shown_name(self.port),
+                self.identity or "L8121",
+                self.dialect.name,
+                self.baudrate,
+            )
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
                 # (as the probe's: whether the controller has received anything from this connect)
@@ -1824,18 +1837,13 @@ class L8121:
             seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
+            elif isinstance(exc, KeyboardInterrupt) and self.control and not self.tube_confirmed_off:
+                self._off_for_unread_interrupt(exc)
             elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
             self._transport.close()
             self._transport = None
             raise
-        logger.info(
-            "%s: %s connected (dialect %s, %d baud)",
-            shown_name(self.port),
-            self.identity or "L8121",
-            self.dialect.name,
-            self.baudrate,
-        )
         return self
 
     def take_over(self, prober: L8121) -> None:
@@ -2068,6 +2076,32 @@ class L8121:
         except DeviceError as err:
             exc.off_failed = err
             self._log_off_failure(err)
+
+    def _off_for_unread_interrupt(self, exc: BaseException) -> None:
+        """XOF and confirm on the open link for a connect interrupted before any ``STS`` read the
+        tube off (its identity query, or the state's own, cut short): a crashed session may have
+        left X-rays on, and the dialect is known. ``XOF`` cannot emit in either dialect
+        (``L8121.md``: A's "X-rays off; always accepted"; B's ``XON`` / ``XOF`` "X-rays on / off",
+        and a B unit off REMOTE refuses it, which changes nothing), so it goes as a refused
+        connect's does (:meth:`_off_after_refused_connect`) rather than leaving the caller only
+        the X-rays warning. The outcome goes on ``exc``: ``tube_state`` (confirmed) or
+        ``off_failed`` (said loudly, as every unconfirmed switch-off); ``state_unread`` tells the
+        last line that no X-rays were seen on; ``probe_sent`` becomes True (the XOF was)."""
+        logger.warning(
+            "%s: interrupted before the state was read (dialect %s): sending XOF all the same",
+            shown_name(self.port),
+            self.dialect.name,
+        )
+        exc.state_unread = True
+        self._give_grammar(self._transport)  # (again: the stop may have cut it short; it only sets what it sets)
+        self._may_be_on = True  # unknown until STS reads a state that cannot emit
+        try:
+            exc.tube_state = self.off()
+        except DeviceError as err:
+            exc.off_failed = err
+            self._log_off_failure(err)
+        finally:
+            exc.probe_sent = True
 
     def _probe(self) -> None:
         c = self.config
