@@ -885,10 +885,12 @@ def _fallen_back(
     once the beam is stable) is a dropped beam, not a ramp still climbing: B's STS reads XON all
     the while (it names no dropped beam), and only the stable wait's time-out caught it, up to
     ``stable_timeout_s`` later. Both conditions: the two tolerances keep a reading's jitter from
-    tripping, the bound a ramp that overshoots and settles. Called only in the ramp after XON,
-    which starts from nothing: after a setting changed while on, L8121.md leaves open where the
-    ramp starts (a unit that ramps again from zero reads a fall from the old setting first), so
-    there the stable wait alone judges it (review s54rvsig)."""
+    tripping, the bound a ramp that overshoots and settles. After XON the ramp starts from
+    nothing, and ``highest`` counts every reading. After a setting changed while on, L8121.md
+    leaves open where the ramp starts (a unit that ramps again from zero reads a fall from the
+    old setting first, review s54rvsig), so ``highest`` counts a value only from when it has
+    climbed more than two tolerances above its lowest reading (-inf before): a ramp of either
+    kind climbs to the setting from there (:meth:`L8121._wait_stable`)."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
@@ -3377,6 +3379,9 @@ class L8121:
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
         highest = (-math.inf, -math.inf)  # the measured kV and µA at their highest in this ramp
+        # after a change while on: the lowest readings so far, and the highest since each had
+        # climbed more than two tolerances above its lowest (-inf: not yet; see below)
+        lowest, climbed = (math.inf, math.inf), (-math.inf, -math.inf)
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3392,13 +3397,28 @@ class L8121:
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
-            # after XON only: the ramp then starts from nothing, so a fall is a drop. After a
-            # change while on, L8121.md does not say where the ramp starts: a unit may ramp again
-            # from zero (tests/l8121_second_reading.py reads it so), its values falling from the
-            # old setting first -- every change while on was switched off as a dropped beam
-            # (review s54rv); the stable wait's time-out still catches one that stays down
-            fell = after_xon and _fallen_back(
-                m_kv, m_ua, highest, (tol_kv, tol_ua), self._beam_span((kv, ua))[0], c.beam_drop_fraction
+            # After XON the ramp starts from nothing, so a fall is a drop. After a change while
+            # on, L8121.md does not say where the ramp starts: a unit may ramp again from zero
+            # (tests/l8121_second_reading.py reads it so), its values falling from the old
+            # setting first -- every change while on was switched off as a dropped beam when a
+            # fall from the old setting counted (review s54rv). Either way the ramp, once it
+            # climbs, climbs to the setting: a value that has risen more than two tolerances
+            # (a reading's jitter, _fallen_back) above its lowest and then falls under the drop
+            # bound is a dropped beam, caught at that reading, not by the stable wait's time-out
+            # (up to stable_timeout_s with the tube on). A fall before any climb (a ramp down, a
+            # value not changed) is still the stable wait's alone: it may be a ramp's start.
+            lowest = (min(lowest[0], m_kv), min(lowest[1], m_ua))
+            climbed = tuple(
+                max(top, value) if top > -math.inf or value > low + 2 * tol else top
+                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, (tol_kv, tol_ua))
+            )
+            fell = _fallen_back(
+                m_kv,
+                m_ua,
+                highest if after_xon else climbed,
+                (tol_kv, tol_ua),
+                self._beam_span((kv, ua))[0],
+                c.beam_drop_fraction,
             )
             if fell:
                 self._trip(f"beam dropped while ramping up: {fell}")
