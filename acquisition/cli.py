@@ -1079,8 +1079,15 @@ def _interrupted_connect(exc) -> str:
     """What an interrupted connect (its ``exc``) left of the tube, for the last line."""
     # who switched off: the connect's own driver (it read X-rays on), or the guardian whose start was cut short
     guardian = getattr(exc, "guardian_off", False)
+    # the connect's own XOF before any STS had read the tube (L8121._off_for_unread_interrupt): no
+    # X-rays were seen on, and "X-rays were on" would say they were
+    unread = getattr(exc, "state_unread", False)
     if getattr(exc, "off_failed", None) is not None:  # + the warning
-        return f"{'X-rays may be on' if guardian else 'X-rays were on'}; switching them off failed ({exc.off_failed})"
+        was = "X-rays may be on" if guardian or unread else "X-rays were on"
+        return f"{was}; switching them off failed ({exc.off_failed})"
+    if getattr(exc, "tube_state", None) is not None and unread and not guardian:
+        # the words off_anyway's XOF ends on: the same switch-off, sent by the connect itself
+        return f"XOF sent anyway: X-rays off (confirmed by STS: {exc.tube_state.name})"
     if getattr(exc, "tube_state", None) is not None:
         who = "switched off by the X-ray guardian" if guardian else "X-rays were on"
         return f"{who}: tube off (confirmed by STS: {exc.tube_state.name})"

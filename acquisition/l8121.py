@@ -885,10 +885,12 @@ def _fallen_back(
     once the beam is stable) is a dropped beam, not a ramp still climbing: B's STS reads XON all
     the while (it names no dropped beam), and only the stable wait's time-out caught it, up to
     ``stable_timeout_s`` later. Both conditions: the two tolerances keep a reading's jitter from
-    tripping, the bound a ramp that overshoots and settles. Called only in the ramp after XON,
-    which starts from nothing: after a setting changed while on, L8121.md leaves open where the
-    ramp starts (a unit that ramps again from zero reads a fall from the old setting first), so
-    there the stable wait alone judges it (review s54rvsig)."""
+    tripping, the bound a ramp that overshoots and settles. After XON the ramp starts from
+    nothing, and ``highest`` counts every reading. After a setting changed while on, L8121.md
+    leaves open where the ramp starts (a unit that ramps again from zero reads a fall from the
+    old setting first, review s54rvsig), so ``highest`` counts a value only from when it has
+    climbed more than two tolerances above its lowest reading (-inf before): a ramp of either
+    kind climbs to the setting from there (:meth:`L8121._wait_stable`)."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
@@ -1779,7 +1781,10 @@ class L8121:
         ``STS`` or kept in :attr:`off_failed`, before it raises (:meth:`_off_after_refused_connect`).
         An interrupt (``KeyboardInterrupt``, a stop signal) after the probe read X-rays on still
         sends ``XOF`` and confirms it before it propagates, carrying ``tube_state`` (confirmed) or
-        ``off_failed``; every interrupt here carries ``probe_sent`` (False: nothing was sent).
+        ``off_failed``; so does one, in a session that controls the tube, once the port is open
+        and before any ``STS`` read the tube off (:meth:`_off_for_unread_interrupt`: a crashed
+        session may have left it on). Every interrupt here carries ``probe_sent`` (False: nothing
+        was sent), and leaves the link closed.
         """
         if self.is_connected:
             return self
@@ -1797,8 +1802,9 @@ class L8121:
         else:
             self._transport = self.url
         self.port_opened = True
-        self._give_grammar(self._transport)
         try:
+            # inside the try: a stop here leaves the link open and the tube untouched otherwise
+            self._give_grammar(self._transport)
             self._check_identity()
             if self._read("state").emitting:
                 if self.switch_at_connect not in (None, "REMOTE"):  # queries only (control=False)
@@ -1817,6 +1823,15 @@ class L8121:
                     self._may_be_on = True
             elif self.unit_unverified and self._last_state.confirms_off:  # reopened before that STS
                 logger.critical("%s", self.unverified_warning(self._last_state))
+            # inside the try too: a stop here, once connect is raising, leaves its caller no driver
+            # to close (``L8121(url)`` returns none), so it is switched off here or not at all
+            logger.info(
+                "%s: %s connected (dialect %s, %d baud)",
+                shown_name(self.port),
+                self.identity or "L8121",
+                self.dialect.name,
+                self.baudrate,
+            )
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
                 # (as the probe's: whether the controller has received anything from this connect)
@@ -1824,18 +1839,13 @@ class L8121:
             seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
+            elif isinstance(exc, KeyboardInterrupt) and self.control and not self.tube_confirmed_off:
+                self._off_for_unread_interrupt(exc)
             elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
             self._transport.close()
             self._transport = None
             raise
-        logger.info(
-            "%s: %s connected (dialect %s, %d baud)",
-            shown_name(self.port),
-            self.identity or "L8121",
-            self.dialect.name,
-            self.baudrate,
-        )
         return self
 
     def take_over(self, prober: L8121) -> None:
@@ -2068,6 +2078,32 @@ class L8121:
         except DeviceError as err:
             exc.off_failed = err
             self._log_off_failure(err)
+
+    def _off_for_unread_interrupt(self, exc: BaseException) -> None:
+        """XOF and confirm on the open link for a connect interrupted before any ``STS`` read the
+        tube off (its identity query, or the state's own, cut short): a crashed session may have
+        left X-rays on, and the dialect is known. ``XOF`` cannot emit in either dialect
+        (``L8121.md``: A's "X-rays off; always accepted"; B's ``XON`` / ``XOF`` "X-rays on / off",
+        and a B unit off REMOTE refuses it, which changes nothing), so it goes as a refused
+        connect's does (:meth:`_off_after_refused_connect`) rather than leaving the caller only
+        the X-rays warning. The outcome goes on ``exc``: ``tube_state`` (confirmed) or
+        ``off_failed`` (said loudly, as every unconfirmed switch-off); ``state_unread`` tells the
+        last line that no X-rays were seen on; ``probe_sent`` becomes True (the XOF was)."""
+        logger.warning(
+            "%s: interrupted before the state was read (dialect %s): sending XOF all the same",
+            shown_name(self.port),
+            self.dialect.name,
+        )
+        exc.state_unread = True
+        self._give_grammar(self._transport)  # (again: the stop may have cut it short; it only sets what it sets)
+        self._may_be_on = True  # unknown until STS reads a state that cannot emit
+        try:
+            exc.tube_state = self.off()
+        except DeviceError as err:
+            exc.off_failed = err
+            self._log_off_failure(err)
+        finally:
+            exc.probe_sent = True
 
     def _probe(self) -> None:
         c = self.config
@@ -3343,6 +3379,9 @@ class L8121:
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
         highest = (-math.inf, -math.inf)  # the measured kV and µA at their highest in this ramp
+        # after a change while on: the lowest readings so far, and the highest since each had
+        # climbed more than two tolerances above its lowest (-inf: not yet; see below)
+        lowest, climbed = (math.inf, math.inf), (-math.inf, -math.inf)
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3358,13 +3397,28 @@ class L8121:
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
-            # after XON only: the ramp then starts from nothing, so a fall is a drop. After a
-            # change while on, L8121.md does not say where the ramp starts: a unit may ramp again
-            # from zero (tests/l8121_second_reading.py reads it so), its values falling from the
-            # old setting first -- every change while on was switched off as a dropped beam
-            # (review s54rv); the stable wait's time-out still catches one that stays down
-            fell = after_xon and _fallen_back(
-                m_kv, m_ua, highest, (tol_kv, tol_ua), self._beam_span((kv, ua))[0], c.beam_drop_fraction
+            # After XON the ramp starts from nothing, so a fall is a drop. After a change while
+            # on, L8121.md does not say where the ramp starts: a unit may ramp again from zero
+            # (tests/l8121_second_reading.py reads it so), its values falling from the old
+            # setting first -- every change while on was switched off as a dropped beam when a
+            # fall from the old setting counted (review s54rv). Either way the ramp, once it
+            # climbs, climbs to the setting: a value that has risen more than two tolerances
+            # (a reading's jitter, _fallen_back) above its lowest and then falls under the drop
+            # bound is a dropped beam, caught at that reading, not by the stable wait's time-out
+            # (up to stable_timeout_s with the tube on). A fall before any climb (a ramp down, a
+            # value not changed) is still the stable wait's alone: it may be a ramp's start.
+            lowest = (min(lowest[0], m_kv), min(lowest[1], m_ua))
+            climbed = tuple(
+                max(top, value) if top > -math.inf or value > low + 2 * tol else top
+                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, (tol_kv, tol_ua))
+            )
+            fell = _fallen_back(
+                m_kv,
+                m_ua,
+                highest if after_xon else climbed,
+                (tol_kv, tol_ua),
+                self._beam_span((kv, ua))[0],
+                c.beam_drop_fraction,
             )
             if fell:
                 self._trip(f"beam dropped while ramping up: {fell}")

@@ -5977,6 +5977,48 @@ class _ReRampingUnit(L8121Model):
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_beam_that_falls_back_after_climbing_to_a_new_setting_is_switched_off_at_that_reading(dialect):
+    """A setting raised while the beam is on (set_values, 100 -> 250 µA): the current ramps up
+    towards it and, once it has climbed more than two tolerances above its lowest reading, falls
+    back under the drop bound (an emitter failing mid-ramp). A ramp that has climbed towards its
+    setting does not fall again, in either reading of L8121.md's "ramp ... after XON or a change"
+    (from where the beam was, or down to nothing first and then up): so it is a dropped beam, as
+    after XON. Before, B's STS still reading XON, only the stable wait's time-out caught it
+    (``stable_timeout_s``, 15 s by default, with the tube on). The model's clock moves a quarter
+    of its ramp after each reading of the current; the beam drops after the one that read it at
+    75 % of the way: no timing in the test."""
+    now = [0.0]
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
+    word = "SCU" if dialect == "B" else "SAR"
+    seen = []
+
+    def step():
+        seen.append(model.measured()[1])
+        if seen[-1] >= 100 + 0.75 * (250 - 100):
+            model.drop_beam()
+        else:
+            now[0] += 0.25
+            model.inject_after(word, step)
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=5.0) as src,
+    ):
+        _clock_per_current_reading(model, dialect, now, 0.25)
+        src.on(60, 100)
+        model.inject_after(word, step)  # in the ticks' place: step() moves the clock from here
+        t0 = time.monotonic()
+        with pytest.raises(SourceFault, match=r"beam dropped while ramping up: measured current 0 µA") as caught:
+            src.set_values(60, 250)
+        took = time.monotonic() - t0
+        after = commands_after(model, word)
+    assert seen[-1] >= 100 + 0.75 * 150 and model.measured() == (0.0, 0.0), seen
+    assert after[0] == "XOF", after  # at the reading that showed it: nothing asked before the switch-off
+    assert took < src.config.stable_timeout_s / 2, took
+    assert "X-rays switched off" in str(caught.value) and not model.xray_on
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
 def test_a_change_while_on_that_ramps_again_from_zero_is_not_called_dropped(dialect):
     """A setting changed while the beam is on (set_values): on a unit whose values ramp again
     from zero after a change (the second reading of L8121.md, tests/l8121_second_reading.py),

@@ -174,9 +174,10 @@ def test_an_interrupt_in_the_connect_checks_after_the_probe_saw_x_rays_on_switch
 def test_source_command_interrupted_while_connecting_switches_off_or_warns(action, given):
     """``radiokit acquire source off`` (or ``on``) on a unit left on by other software or a crash, a real SIGINT
     while the connect waits for a reply (the probe's, with ``auto``): the switch-off is sent all
-    the same -- in the dialect given, or, for ``off`` alone, as the XOF both dialects share when
-    the interrupted probe found none -- after one reply time-out for the cut-short reply, and
-    confirmed by STS: exit 130 on the confirmed line. ``on`` whose probe was cut short sends
+    the same -- in the dialect given, by the connect itself on its link (after the cut-short
+    reply), or, for ``off`` alone, as the XOF both dialects share when the interrupted probe found
+    none, after one reply time-out for the cut-short reply -- and confirmed by STS: exit 130 on
+    the confirmed line. ``on`` whose probe was cut short sends
     nothing more (no dialect: most likely the wrong port) and, the port opened and the tube not
     confirmed off, ends on the warning, exit 3 (README's one rule). Before: `off` ended on the
     warning with the tube on; `on` on "no X-ray command was sent", exit 130, the tube on. ``warm-up``
@@ -537,3 +538,44 @@ def _signal_after(model, n, command, skip) -> list[float]:
 
     threading.Thread(target=watch, daemon=True).start()
     return sent_at
+
+
+@pytest.mark.parametrize("query", ["identity", "state"])
+def test_an_interrupt_before_connect_reads_the_state_switches_off_in_the_dialect_given(dialect, query):
+    """``dialect`` given (no probe), the unit left on by a crashed session: interrupted while
+    connect waits for its identity query's reply (A ``TYP``, B ``SRL``) or its first ``STS``'s,
+    before any state was read. L8121.md: ``XOF`` is "always accepted" in A and in B only switches
+    off (a unit off REMOTE refuses it, which changes nothing), so connect sends it all the same
+    on the open link, after the cut-short reply, and confirms it by ``STS`` before the interrupt
+    goes on, carrying the confirmed state. Before, it let the link go with nothing sent, the tube
+    on, and the caller ended on the X-rays warning."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    word = {"identity": "TYP" if dialect == "A" else "SRL", "state": "STS"}[query]
+    with PtyServer(model) as server:
+        model.delay_once(DELAY_S, word)  # that reply alone: the switch-off's own come at once
+        with interrupt_when_received(model, word, 0):
+            with pytest.raises(KeyboardInterrupt) as info:
+                L8121(server.url, dialect=dialect, **FAST)
+        sent = model.commands
+        assert not model.xray_on, sent
+    assert word in sent and sent.count("XOF") == 1 and sent[-2:] == ["XOF", "STS"], sent
+    assert getattr(info.value, "tube_state", None) in OFF, vars(info.value)
+    assert getattr(info.value, "off_failed", None) is None, vars(info.value)
+
+
+def test_an_interrupt_before_connect_reads_the_state_warns_when_the_switch_off_is_not_confirmed():
+    """The same stop (B, ``SRL`` pending) at a unit that falls silent as it is interrupted: the
+    ``XOF`` is sent, nothing confirms it, and the interrupt carries ``off_failed`` -- the loud
+    warning's cause -- rather than a state."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    with PtyServer(model) as server:
+        model.delay_once(DELAY_S, "SRL")
+        model.inject_after("SRL", lambda: model.silence(True))
+        with interrupt_when_received(model, "SRL", 0):
+            with pytest.raises(KeyboardInterrupt) as info:
+                L8121(server.url, dialect="B", **FAST, timeout_s=0.2, off_attempts=1)
+    assert "XOF" in model.commands, model.commands
+    assert getattr(info.value, "tube_state", None) is None, vars(info.value)
+    assert getattr(info.value, "off_failed", None) is not None, vars(info.value)

@@ -278,3 +278,56 @@ def test_a_stop_inside_the_reply_check_costs_the_switch_off_no_time_out(dialect)
         )
     assert len(tried) > 5, len(tried)  # the check ran through the driver's grammar
     assert not failures, (len(failures), failures[:5])
+
+
+def test_a_stop_at_any_point_of_a_connect_in_a_given_dialect_leaves_the_tube_off(dialect):
+    """``connect()`` with the dialect given, at a unit left on by a crashed session, stopped at each
+    of its points in turn (the link's open, the identity query, the state's): the stop goes on
+    only once the tube is off, confirmed by ``STS`` and carried on the stop (``tube_state``) --
+    by connect's own ``XOF``, before the state was read as after it read X-rays on. Before, a
+    stop ahead of the state's reading let the link go with nothing sent, the tube on, and the
+    caller could only warn."""
+    model, server = _source(dialect)
+    tried: set = set()
+    failures: list = []
+    with server:
+
+        def sweep():
+            while True:
+                if not model.xray_on:
+                    model.left_on(60, 250)
+                src = L8121(server.url, dialect=dialect, poll_s=0.005, min_interval_s=0.0, connect=False)
+                tracer, fired = _stop_once_at_a_new_point(src, tried)
+                sys.settrace(tracer)
+                stop = None
+                try:
+                    src.connect()
+                except StopSignal as exc:
+                    stop = exc
+                except Exception as exc:
+                    failures.append((fired["at"], "connect", repr(exc)))
+                finally:
+                    sys.settrace(None)
+                if fired["at"] is None:
+                    src.close()
+                    return
+                code, place = fired["at"][:2]
+                where = (code.co_name, code.co_firstlineno if place < 0 else _line_of(code, place))
+                state = getattr(stop, "tube_state", None)
+                if not src.port_opened and not src.is_connected:
+                    # stopped before the port was opened: nothing could be sent, and the stop says so
+                    if getattr(stop, "probe_sent", False) or "XOF" in model.commands[-2:]:
+                        failures.append((where, "a stop before the port opened said something was sent"))
+                    continue
+                if model.xray_on or state is None or not state.confirms_off:
+                    failures.append((where, state, model.state, src.is_connected))
+                if src.is_connected:  # a stop must not leave the port held
+                    failures.append((where, "link left open"))
+                    src.detach()
+
+        worker = threading.Thread(target=sweep, daemon=True)
+        worker.start()
+        worker.join(timeout=WALL_S)
+    assert not worker.is_alive(), f"hung after a stop (points tried: {len(tried)}; failures: {failures[:3]})"
+    assert len(tried) > 10, len(tried)
+    assert not failures, (len(failures), failures)
