@@ -215,6 +215,23 @@ class FolderWatcher:
     def _pixel_size(self) -> float:
         return implied_pixel_size_mm(self.preset, self.shape)
 
+    #: what the experiment file names the panel: the watcher reads the C7942's vendor software
+    panel_name = "Hamamatsu C7942SK-02"
+
+    @property
+    def pixel_size_from(self) -> str | None:
+        """Where :attr:`pixel_size_mm` came from, as the experiment file records it; None where it
+        is only the C7942's assumed (no preset, a frame width no binning of it gives): then the
+        file records no pitch, and its readers say they assume it."""
+        if self._pixel_size_given:
+            return "the protocol's [detector] pixel_size_mm"
+        if self.preset is not None:
+            return f"the detector preset {self.preset}"
+        if self.shape is not None and self.shape[1] in (2240, 1120, 560):
+            b = 2240 // self.shape[1]
+            return f"the frames' width, {self.shape[1]} columns: the C7942 binned {b}x{b}"
+        return None
+
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:
         """Record the files already there (never taken) and re-arm the discard of the first frame."""
@@ -758,6 +775,14 @@ class SimDetector:
 
     def _name(self) -> str:
         return f"simulated detector ({self.bench.scene.name})"
+
+    @property
+    def panel_name(self) -> str:
+        return self.bench.scene.detector.panel_name
+
+    @property
+    def pixel_size_from(self) -> str:
+        return self.bench.scene.detector.pixel_size_from
 
     def fail_after(self, k: int | None) -> None:
         """Fault injection: deliver ``k`` more frames, then none (a lost detector): ``acquire``

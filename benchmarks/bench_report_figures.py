@@ -32,7 +32,7 @@ def _experiment(path, n):
     rr, cc = np.mgrid[0:n, 0:n]
     c, half = 0.3 * n, 0.04 * n
     sq = (abs(rr - c) < half) & (abs(cc - c) < half)
-    with ExperimentWriter(path, shape=(n, n)) as w:
+    with ExperimentWriter(path, shape=(n, n), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((n, n), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((n, n), 3100, np.uint16), image_key=ImageKey.FLAT)

@@ -410,7 +410,7 @@ def write_synthetic(path: Path, n_cal: int, per_step: int):
     n = _SYN_SIDE
     rr, cc = np.mgrid[0:n, 0:n]
     sq = (np.abs(rr - 560) < 60) & (np.abs(cc - 560) < 60)
-    with ExperimentWriter(path, shape=(n, n), overwrite=True) as w:
+    with ExperimentWriter(path, shape=(n, n), overwrite=True, pixel_size_mm=0.05) as w:
         for _ in range(n_cal):
             w.append((100 + rng.normal(0, 2, (n, n))).astype(np.uint16), image_key=ImageKey.DARK)
         for _ in range(n_cal):

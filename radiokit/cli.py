@@ -188,6 +188,36 @@ def _clinical_summary(meta: dict) -> dict:
     }
 
 
+def _experiment_summary(meta: dict) -> dict:
+    """An experiment file's frames by kind, its steps, its source, and its detector and pitch as
+    recorded (where the pitch is not, what the readers assume)."""
+    keys = np.asarray(meta.get("image_key", []))
+    steps = np.asarray(meta.get("step", np.full(keys.shape, -1)))  # optional in the file
+    steps = steps if steps.shape == keys.shape else np.full(keys.shape, -1)
+    out = {
+        "projections": int(np.sum(keys == 0)),
+        "flats": int(np.sum(keys == 1)),
+        "darks": int(np.sum(keys == 2)),
+        "invalid": int(np.sum(keys == 3)),
+        "steps": sorted(int(s) for s in set(steps[(keys == 0) & (steps >= 0)].tolist())),
+        "simulated": bool(meta.get("simulated", False)),
+    }
+    src = meta.get("source", {})
+    out["source"] = " ".join(
+        f"{src[k]:g} {unit}" if isinstance(src.get(k), (int, float, np.number)) else str(src.get(k))
+        for k, unit in (("name", ""), ("voltage", "kV"), ("current", "uA"))
+        if k in src and not (isinstance(src[k], (float, np.floating)) and np.isnan(src[k]))
+    ).strip()
+    out["detector"] = meta.get("detector")
+    out["pixel_size_from"] = meta.get("pixel_size_from")
+    if meta.get("x_pixel_size") is None and not meta.get("pixel_size_unusable"):
+        # the pipeline assumes this pitch and warns; info says it before a run rests on it
+        from radiokit.io import C7942_PIXEL_SIZE_MM
+
+        out["pixel_size"] = f"not recorded (readers assume {C7942_PIXEL_SIZE_MM * 1e3:g} \u00b5m, the C7942's)"
+    return out
+
+
 def _summary(meta: dict) -> dict:
     """The few metadata items a person wants to see first."""
     fmt = meta.get("format")
@@ -213,23 +243,7 @@ def _summary(meta: dict) -> dict:
             },
         }
     elif fmt == "experiment":
-        keys = np.asarray(meta.get("image_key", []))
-        steps = np.asarray(meta.get("step", np.full(keys.shape, -1)))  # optional in the file
-        steps = steps if steps.shape == keys.shape else np.full(keys.shape, -1)
-        out = {
-            "projections": int(np.sum(keys == 0)),
-            "flats": int(np.sum(keys == 1)),
-            "darks": int(np.sum(keys == 2)),
-            "invalid": int(np.sum(keys == 3)),
-            "steps": sorted(int(s) for s in set(steps[(keys == 0) & (steps >= 0)].tolist())),
-            "simulated": bool(meta.get("simulated", False)),
-        }
-        src = meta.get("source", {})
-        out["source"] = " ".join(
-            f"{src[k]:g} {unit}" if isinstance(src.get(k), (int, float, np.number)) else str(src.get(k))
-            for k, unit in (("name", ""), ("voltage", "kV"), ("current", "uA"))
-            if k in src and not (isinstance(src[k], (float, np.floating)) and np.isnan(src[k]))
-        ).strip()
+        out = _experiment_summary(meta)
     elif fmt == "tiff":
         out = {k: v for k, v in meta.get("tags", {}).items() if k in ("Software", "DateTime", "Compression")}
         if meta.get("stacked"):  # frame k of a (2, 5, rows, cols) series is (k // 5, k % 5)
@@ -255,6 +269,8 @@ def _summary(meta: dict) -> dict:
         out["pixel_size_mm"] = x if math.isclose(x, y, rel_tol=1e-6) else [x, y]
     elif out.get("pixel_size_mm") is None and meta.get("pixel_size_unusable"):  # read and ignored: why
         out["pixel_size"] = f"unusable, {meta['pixel_size_unusable']}"
+    if "pixel_size_from" in out:  # said after the pitch it is of
+        out["pixel_size_from"] = out.pop("pixel_size_from")
     return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 

@@ -36,7 +36,7 @@ Example (a small synthetic experiment written here; real files come from ``radio
     >>> def frame(t_body, t_incl):   # a slab thinned by compression, with a denser square
     ...     L = 0.08 * t_body + 0.03 * t_incl * ((abs(rr - 80) < 10) & (abs(cc - 80) < 10))
     ...     return (100 + 3000 * np.exp(-L)).astype(np.uint16)
-    >>> with ExperimentWriter(os.path.join(d, "exp.h5"), shape=(160, 160)) as w:
+    >>> with ExperimentWriter(os.path.join(d, "exp.h5"), shape=(160, 160), pixel_size_mm=0.05) as w:
     ...     for _ in range(3): _ = w.append(np.full((160, 160), 100, np.uint16), image_key=ImageKey.DARK)
     ...     for _ in range(3): _ = w.append(np.full((160, 160), 3100, np.uint16), image_key=ImageKey.FLAT)
     ...     for step, (tb, ti) in enumerate([(20.0, 8.0), (18.0, 7.8), (16.0, 7.6)], start=1):

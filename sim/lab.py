@@ -190,6 +190,8 @@ def simulate_experiment(
             shape=panel.shape,
             overwrite=overwrite,
             pixel_size_mm=det.pixel_size_mm,
+            pixel_size_from=det.pixel_size_from,
+            detector_name=det.panel_name,
             bit_depth=panel.bits,  # readers then know the ADC's top without inferring it
             source=src,
             title=f"radiokit simulation: {scene.name}",

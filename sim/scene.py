@@ -397,6 +397,14 @@ class Detector:
     def pixel_size_mm(self) -> float:
         return 0.05 * self.binning
 
+    #: the name an experiment file of this panel's frames records
+    panel_name = "Hamamatsu C7942SK-02 (simulated)"
+
+    @property
+    def pixel_size_from(self) -> str:
+        """Where :attr:`pixel_size_mm` comes from, as an experiment file records it."""
+        return f"the simulated detector, preset {self.preset} binned {self.binning}x{self.binning}"
+
 
 #: The least open beam a pixel may collect, counts above the dark offset: one count is the 12-bit
 #: ADC's least step, half the panel's read noise (2 counts) and a sixth of its dark offset's

@@ -110,7 +110,7 @@ def _write_synthetic(path, scale, shape, n_per_step, noise):
     rows, cols = shape
     rr, cc = np.mgrid[0:rows, 0:cols]
     sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:  # a C7942 file, its pitch recorded
         for _ in range(3):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)

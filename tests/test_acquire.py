@@ -40,7 +40,7 @@ import pytest
 from acquisition.cli import QUERIES_ONLY
 from acquisition.errors import DetectorTimeout, DeviceError, SourceFault
 from acquisition.protocols import load_protocol, plan, run, sim_devices
-from radiokit.io import ExperimentWriter, ImageKey
+from radiokit.io import ExperimentWriter, ImageKey, read
 
 DARKS, FLATS, PER_STEP = 2, 2, 3
 STEPS = (0.15, 0.20, 0.25)
@@ -156,6 +156,11 @@ def test_clean_series_writes_every_frame_with_its_metadata_and_physics(tmp_path,
         assert proj < flat - 1
     with h5py.File(p.output, "r") as h5:
         assert load_protocol(h5["entry"].attrs["protocol"]) == p  # the file names what produced it
+    # the panel and its pitch as the virtual bench's detector states them, and where from
+    meta = read(p.output).meta
+    d = bench.scene.detector
+    assert (meta["detector"], meta["pixel_size_from"]) == (d.panel_name, d.pixel_size_from)
+    assert meta["pixel_size_mm"] == pytest.approx(d.pixel_size_mm, rel=1e-12)
     notebook = (tmp_path / "series.log").read_text()  # every exchange, for the lab notebook
     for cmd in ("> HIV 60", "> CUR 250", "> XON", "> XOF", "> SAR"):
         assert cmd in notebook, cmd

@@ -211,7 +211,7 @@ def test_pipeline_reports_the_bound_and_cnr_per_domain_and_k(tmp_path):
         return np.clip(100 + 3000 * np.exp(-L) + rng.normal(0, 3, L.shape), 0, 4095).astype(np.uint16)
 
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=(160, 160)) as w:
+    with ExperimentWriter(path, shape=(160, 160), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((160, 160), 100, np.uint16), image_key=ImageKey.DARK)
         for _ in range(3):

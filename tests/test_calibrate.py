@@ -204,7 +204,7 @@ def test_from_experiment_matches_from_frames(tmp_path):
     rng = np.random.default_rng(4)
     darks, flats = panel.dark_frames(5, rng), panel.flat_frames(5, 2000, rng)
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=panel.shape) as w:
+    with ExperimentWriter(path, shape=panel.shape, pixel_size_mm=0.05) as w:
         for f in darks:
             w.append(f, image_key=ImageKey.DARK)
         for f in flats:
@@ -219,7 +219,7 @@ def test_from_experiment_matches_from_frames(tmp_path):
 
 
 def _experiment_with_mask(path, panel, darks, flats, mask):
-    with ExperimentWriter(path, shape=panel.shape) as w:
+    with ExperimentWriter(path, shape=panel.shape, pixel_size_mm=0.05) as w:
         for f in darks:
             w.append(f, image_key=ImageKey.DARK)
         for f in flats:
@@ -288,7 +288,7 @@ def test_from_experiment_without_darks(tmp_path):
     from radiokit import FormatError
 
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=(8, 8)) as w:
+    with ExperimentWriter(path, shape=(8, 8), pixel_size_mm=0.05) as w:
         w.append(np.ones((8, 8), np.uint16), image_key=ImageKey.FLAT)
     with pytest.raises(FormatError, match="no darks"):
         Calibration.from_experiment(path)
@@ -542,7 +542,7 @@ def test_flats_at_another_tube_current_than_the_projections(tmp_path):
     shape, rng = (96, 128), np.random.default_rng(9)
     L = np.tile(np.linspace(0.2, 1.2, shape[1]), (shape[0], 1))
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=shape, source={"voltage_kv": 40, "current_ua": 200}) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05, source={"voltage_kv": 40, "current_ua": 200}) as w:
         for _ in range(3):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
         for _ in range(3):
@@ -572,7 +572,7 @@ def test_the_voltage_warning_counts_every_projection_at_another_voltage(tmp_path
 
     shape, rng = (16, 20), np.random.default_rng(11)
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=shape, source={"voltage_kv": 40, "current_ua": 100}) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05, source={"voltage_kv": 40, "current_ua": 100}) as w:
         for _ in range(2):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
             w.append(100 + rng.poisson(3000, shape), image_key=ImageKey.FLAT, voltage_kv=40, current_ua=100)
@@ -600,7 +600,7 @@ def test_process_refuses_a_projection_with_the_beam_off(tmp_path):
 
     shape, rng = (64, 80), np.random.default_rng(10)
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         _darks_and_flats(w, shape, rng, 3)
         w.append(100 + rng.poisson(1500, shape), image_key=ImageKey.PROJECTION, step=1)
         w.append(100 + rng.poisson(5, shape), image_key=ImageKey.PROJECTION, step=2)  # beam off: the dark
@@ -630,7 +630,7 @@ def test_process_says_when_projections_hold_saturated_pixels(tmp_path):
 
     shape, rng = (64, 80), np.random.default_rng(13)
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3100)):
             for _ in range(4):
                 frame = level + rng.poisson(5, shape)
@@ -982,7 +982,7 @@ def test_save_refuses_an_existing_file_unless_overwrite_and_replaces_it_whole(tm
 def test_save_never_writes_into_an_experiment_file(tmp_path):
     """``cal.save("exp.h5")`` added a ``calibration`` group inside a raw experiment file."""
     exp = tmp_path / "exp.h5"
-    with ExperimentWriter(exp, shape=(8, 8)) as w:
+    with ExperimentWriter(exp, shape=(8, 8), pixel_size_mm=0.05) as w:
         w.append(np.full((8, 8), 100, np.uint16), image_key=ImageKey.DARK)
     before = exp.read_bytes()
     with pytest.raises(FileExistsError, match="exp.h5: exists"):

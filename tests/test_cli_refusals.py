@@ -536,7 +536,7 @@ def _with_currents(path, flat_ua, projection_ua, shape=(160, 160)):
 
     rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
     sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK, current_ua=0.0)  # the tube off
             w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=flat_ua)
@@ -618,7 +618,7 @@ def test_correct_without_cal_on_an_experiment_lacking_its_flats_names_the_flats(
     from radiokit.io import ExperimentWriter, ImageKey
 
     rng = np.random.default_rng(0)
-    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32)) as w:
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32), pixel_size_mm=0.05) as w:
         for key in (ImageKey.DARK, ImageKey.DARK, ImageKey.PROJECTION):
             w.append(rng.normal(100, 2, (32, 32)).astype(np.uint16), image_key=key)
     line = one_line_error(run_cli("correct", tmp_path / "exp.h5", "-o", tmp_path / "out.h5"), "exp.h5", "no flats")
@@ -633,7 +633,7 @@ def test_correct_of_a_file_without_projections_says_so(tmp_path):
     from radiokit.io import ExperimentWriter, ImageKey
 
     rng = np.random.default_rng(0)
-    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32)) as w:
+    with ExperimentWriter(tmp_path / "exp.h5", shape=(32, 32), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(rng.normal(100, 2, (32, 32)).astype(np.uint16), image_key=ImageKey.DARK)
             w.append(rng.normal(3000, 30, (32, 32)).astype(np.uint16), image_key=ImageKey.FLAT)
@@ -986,7 +986,7 @@ def _drifting(path):
 
     texture = ndimage.gaussian_filter(np.random.default_rng(1).random((128, 160)), 3)
     texture = (texture - texture.min()) / (texture.max() - texture.min())
-    with ExperimentWriter(path, shape=(128, 128)) as w:
+    with ExperimentWriter(path, shape=(128, 128), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((128, 128), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((128, 128), 3100, np.uint16), image_key=ImageKey.FLAT)
@@ -1051,7 +1051,7 @@ def _many_steps(path, n_steps, shape=(160, 160)):
     """synthetic()'s slab and square over ``n_steps`` steps of compression."""
     rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
     sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT)

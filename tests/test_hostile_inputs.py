@@ -67,7 +67,7 @@ def one_line_error(res, *needles):
 
 def _experiment(path, shape=(32, 40), projections=True, step=True):
     rng = np.random.default_rng(0)
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(rng.integers(90, 110, shape), image_key=ImageKey.DARK)
         for _ in range(3):
@@ -618,7 +618,7 @@ def test_process_counts_every_nan_pixel_and_the_frames_holding_them(tmp_path):
 
     shape, rng = (32, 40), np.random.default_rng(3)
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for key, level in ((ImageKey.DARK, 100), (ImageKey.FLAT, 3000)):
             for _ in range(3):
                 w.append(rng.integers(level - 10, level + 10, shape), image_key=key)
@@ -666,12 +666,12 @@ def test_process_on_unusable_files(case, tmp_path):
     if case == "no projections":
         _experiment(path, projections=False)
     elif case == "one step":
-        with ExperimentWriter(path, shape=(16, 16)) as w:
+        with ExperimentWriter(path, shape=(16, 16), pixel_size_mm=0.05) as w:
             w.append(np.full((16, 16), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((16, 16), 3000, np.uint16), image_key=ImageKey.FLAT)
             w.append(np.full((16, 16), 1000, np.uint16), image_key=ImageKey.PROJECTION, step=1)
     elif case == "no darks":
-        with ExperimentWriter(path, shape=(16, 16)) as w:
+        with ExperimentWriter(path, shape=(16, 16), pixel_size_mm=0.05) as w:
             w.append(np.full((16, 16), 1000, np.uint16), image_key=ImageKey.PROJECTION, step=1)
     elif case == "not hdf5":
         path.write_bytes(b"hello" * 100)
@@ -769,7 +769,7 @@ def test_process_names_a_file_that_is_not_an_experiment_and_a_control_of_another
 def test_process_says_what_steps_a_file_of_fewer_than_two_holds(steps, words, tmp_path):
     # projections written without a step number (-1) were reported as "found steps []"
     path = tmp_path / "exp.h5"
-    with ExperimentWriter(path, shape=(16, 16)) as w:
+    with ExperimentWriter(path, shape=(16, 16), pixel_size_mm=0.05) as w:
         w.append(np.full((16, 16), 100, np.uint16), image_key=ImageKey.DARK)
         w.append(np.full((16, 16), 3000, np.uint16), image_key=ImageKey.FLAT)
         for step in steps:
@@ -1001,7 +1001,7 @@ def _truth_record(n_steps, shape):
 
 def _simulation_file(path):
     record = _truth_record(2, (4, 5))
-    with ExperimentWriter(path, shape=(4, 5)) as w:
+    with ExperimentWriter(path, shape=(4, 5), pixel_size_mm=0.05) as w:
         for key in (ImageKey.DARK, ImageKey.FLAT):
             w.append(np.full((4, 5), 100 * (key + 1), np.uint16), image_key=key)
         w.write_simulation(record)
@@ -1947,7 +1947,7 @@ def test_correct_refuses_a_calibration_whose_flat_current_is_true(tmp_path):
     whose provenance says ``"flat_current_ua": true`` corrected them to 0.0025 with exit code 0."""
     shape = (16, 20)
     exp = tmp_path / "exp.h5"
-    with ExperimentWriter(exp, shape=shape) as w:
+    with ExperimentWriter(exp, shape=shape, pixel_size_mm=0.05) as w:
         for _ in range(2):
             w.append(np.full(shape, 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full(shape, 3100, np.uint16), image_key=ImageKey.FLAT, current_ua=200)
@@ -2153,7 +2153,7 @@ def test_process_names_the_file_frame_of_a_dark_labelled_as_a_flat(tmp_path):
     by its frame in the file, not by its place among the flats."""
     path = tmp_path / "exp.h5"
     rng = np.random.default_rng(0)
-    with ExperimentWriter(path, shape=(32, 40)) as w:
+    with ExperimentWriter(path, shape=(32, 40), pixel_size_mm=0.05) as w:
         for key, level in ((ImageKey.DARK, 100), (ImageKey.DARK, 100), (ImageKey.FLAT, 3000), (ImageKey.FLAT, 3000)):
             w.append(rng.integers(level - 10, level + 10, (32, 40)), image_key=key)
         w.append(rng.integers(90, 110, (32, 40)), image_key=ImageKey.FLAT)  # the beam was off
@@ -2170,7 +2170,7 @@ def test_process_refuses_projections_brighter_than_the_flats(tmp_path):
     the open beam: the step is named with how much brighter, in one line."""
     path = tmp_path / "exp.h5"
     rng = np.random.default_rng(0)
-    with ExperimentWriter(path, shape=(48, 48)) as w:
+    with ExperimentWriter(path, shape=(48, 48), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
             w.append(rng.normal(800, 10, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
@@ -2226,7 +2226,7 @@ def test_process_of_steps_that_did_not_move_prints_no_warnings(tmp_path):
     rng = np.random.default_rng(0)
     rr, cc = np.mgrid[:48, :48]
     inclusion = (abs(rr - 24) < 5) & (abs(cc - 24) < 5)
-    with ExperimentWriter(path, shape=(48, 48)) as w:
+    with ExperimentWriter(path, shape=(48, 48), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(rng.normal(100, 2, (48, 48)).astype(np.uint16), image_key=ImageKey.DARK)
             w.append(rng.normal(2900, 20, (48, 48)).astype(np.uint16), image_key=ImageKey.FLAT)
@@ -2857,7 +2857,7 @@ def _float_experiment(path, scale):
     ``scale``: what a float file in other units gives `radiokit process`."""
     rng = np.random.default_rng(0)
     shape = (64, 64)
-    with ExperimentWriter(path, shape=shape) as w:
+    with ExperimentWriter(path, shape=shape, pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(rng.normal(100, 2, shape).round(), image_key=ImageKey.DARK)
         for _ in range(3):
@@ -3137,7 +3137,7 @@ def test_a_resumed_file_s_stored_protocol_nested_past_radiokit_s_depth_is_one_li
     scene.write_text(block_scene(size_mm=10.0, ratios=(0.15, 0.25)).to_toml())
     proto = write_protocol(tmp_path, scene, "/dev/null")
     series = tmp_path / "series.h5"  # the protocol's output
-    with ExperimentWriter(series, shape=(4, 4)) as w:
+    with ExperimentWriter(series, shape=(4, 4), pixel_size_mm=0.05) as w:
         w.h5["entry"].attrs["protocol"] = DEEP_TOML[depth]
     res = run_cli("acquire", proto, "--dry-run", "--sim", "--resume", cwd=tmp_path)
     one_line_error(res, "stored protocol", "nests deeper than 32")

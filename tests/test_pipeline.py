@@ -248,7 +248,7 @@ def test_bad_input_is_a_clear_error(tmp_path):
     from radiokit.pipeline import process
 
     path = tmp_path / "one-step.h5"
-    with ExperimentWriter(path, shape=(32, 32)) as w:
+    with ExperimentWriter(path, shape=(32, 32), pixel_size_mm=0.05) as w:
         w.append(np.full((32, 32), 100, np.uint16), image_key=ImageKey.DARK)
         w.append(np.full((32, 32), 3000, np.uint16), image_key=ImageKey.FLAT)
         w.append(np.full((32, 32), 2000, np.uint16), image_key=ImageKey.PROJECTION, step=1)
@@ -264,7 +264,7 @@ def _synthetic(path, scale=1.0):
 
     rr, cc = np.mgrid[0:160, 0:160]
     sq = (abs(rr - 80) < 10) & (abs(cc - 80) < 10)
-    with ExperimentWriter(path, shape=(160, 160)) as w:
+    with ExperimentWriter(path, shape=(160, 160), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((160, 160), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((160, 160), 3100, np.uint16), image_key=ImageKey.FLAT)

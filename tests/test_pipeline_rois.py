@@ -38,7 +38,7 @@ def _experiment(path, texture_outside: float | None, seed=0):
     texture *= 0.10 / texture.std()  # line-integral units; the noise is ~0.01 at the body's centre
     rr, cc = np.mgrid[0:N, 0:N].astype(np.float64)
     c = (N - 1) / 2
-    with ExperimentWriter(path, shape=(N, N)) as w:
+    with ExperimentWriter(path, shape=(N, N), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((N, N), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((N, N), 3100, np.uint16), image_key=ImageKey.FLAT)
@@ -232,7 +232,7 @@ def _disc_experiment(path, n=200, radius=20.0):
     rng = np.random.default_rng(1)
     rr, cc = np.mgrid[0:n, 0:n]
     disc = np.hypot(rr - n / 2, cc - n / 2) < radius
-    with ExperimentWriter(path, shape=(n, n)) as w:
+    with ExperimentWriter(path, shape=(n, n), pixel_size_mm=0.05) as w:
         for _ in range(3):
             w.append(np.full((n, n), 100, np.uint16), image_key=ImageKey.DARK)
             w.append(np.full((n, n), 3100, np.uint16), image_key=ImageKey.FLAT)

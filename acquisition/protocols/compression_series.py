@@ -1527,11 +1527,16 @@ def _warn_if_short_of_room(r: _Run, existed: bool) -> None:
 
 def _open_experiment(r: _Run):
     """The experiment file, created (or reopened to resume) and the run recorded in it."""
-    from radiokit.io import C7942_PIXEL_SIZE_MM
-
     src, p, det = r.source, r.p, r.devices.detector
+    # the pitch and the panel's name only where the detector knows them, and where the pitch came
+    # from: a pitch merely assumed (a folder of frames of no C7942 width) had been recorded as the
+    # panel's own, and every file named the C7942
+    origin = getattr(det, "pixel_size_from", "the detector's")
+    pitch = getattr(det, "pixel_size_mm", p.detector.pixel_size_mm)
     kw = dict(
-        pixel_size_mm=getattr(det, "pixel_size_mm", p.detector.pixel_size_mm or C7942_PIXEL_SIZE_MM),
+        pixel_size_mm=pitch if origin is not None else None,
+        pixel_size_from=origin if pitch is not None else None,
+        detector_name=getattr(det, "panel_name", None),
         source={
             "name": "Hamamatsu L8121-01" + (" (emulated)" if r.sim else ""),
             "voltage_kv": p.source.voltage_kv,

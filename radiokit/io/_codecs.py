@@ -116,18 +116,22 @@ def _j2k_header(read, start: int, size: int) -> dict:
                 out["lossless"] = None if cod[9] == 1 else False
                 out["reversible"] = cod[9] == 1
         pos += 2 + int.from_bytes(b[2:4], "big")
-    out["tiles_found"] = _tiles_found(read, out.get("scan", size), size, out["tiles"])
+    out["tiles_found"], end = _tiles_found(read, out.get("scan", size), size, out["tiles"])
+    if end is not None:
+        out["tile_parts_end"] = end
     if "reversible" in out:
         out["process"] += " (reversible 5/3)" if out["reversible"] else " (irreversible 9/7: lossy)"
     return out
 
 
-def _tiles_found(read, pos: int, size: int, tiles: int) -> int:
+def _tiles_found(read, pos: int, size: int, tiles: int) -> tuple[int, int | None]:
     """How many of the ``tiles`` a codestream declares have a tile-part, its SOT segments walked by
-    their lengths (Psot, T.800 A.4.2) from the first. Why: OpenJPEG decodes a tile without one as
-    zeros, without a word, and sets up every tile declared (its structures, not the image, are
-    what a few bytes declaring tens of thousands of tiles cost: benchmarks/README.md)."""
-    found = set()
+    their lengths (Psot, T.800 A.4.2) from the first, and where the last tile-part's length ends
+    (None where it runs to the end: Psot 0, or one too short to be read). Why: OpenJPEG decodes a
+    tile without one as zeros, without a word, and sets up every tile declared (its structures,
+    not the image, are what a few bytes declaring tens of thousands of tiles cost:
+    benchmarks/README.md); and the lengths must end at the end marker (EOC)."""
+    found, end = set(), None
     while pos + 10 <= size:
         sot = read(pos, 10)
         if sot[:2] != b"\xff\x90":
@@ -136,9 +140,10 @@ def _tiles_found(read, pos: int, size: int, tiles: int) -> int:
         if tile < tiles:
             found.add(tile)
         if length < 14:  # 0: the last tile-part, to the end; less than SOT and SOD: corrupt
-            break
+            return len(found), None
         pos += length
-    return len(found)
+        end = pos
+    return len(found), end
 
 
 def _jp2_codestream(read, size: int) -> int:
@@ -240,7 +245,78 @@ def decode(path, buf, header: dict, where: str = "") -> np.ndarray:
             path, f"{where}a {describe(header)} image that cannot be decoded: {' '.join(str(exc).split())}"
         ) from None
     check_decoded(path, data, header, where)
+    if header["codec"] == "jpeg":
+        check_coded_data(path, buf, header, data, codec, where)
     return data
+
+
+#: bytes put before each marker that ends a JPEG's coded data, for :func:`check_coded_data`'s
+#: second decode: no 0xFF (a marker's first byte), and not the zero bits libjpeg-turbo fills in
+#: where the data runs out, nor all ones (no Huffman code, T.81 C)
+_PAD = bytes([0xA5, 0x5A, 0x96, 0x69]) * 16
+
+
+def _restart_padded(buf, header: dict) -> tuple[bytes, list[list[int]]]:
+    """``buf`` with :data:`_PAD` before each marker that ends coded data (a restart interval's RSTn,
+    a scan's next marker), and each scan's RSTn numbers in order. Coded data holds no marker:
+    an 0xFF in it is stuffed (0xFF00), T.81 B.1.1.5."""
+    data, pieces, scans, pos = bytes(buf), [], [], header["scan"]
+    done = 0
+    while pos + 4 <= len(data) and data[pos : pos + 2] == b"\xff\xda":  # an SOS: its header, then coded data
+        i, rst = pos + 2 + int.from_bytes(data[pos + 2 : pos + 4], "big"), []
+        while (i := data.find(b"\xff", i)) >= 0 and i + 1 < len(data):
+            nxt = data[i + 1]
+            if nxt == 0x00:  # stuffed
+                i += 2
+                continue
+            if nxt == 0xFF:  # a fill byte before a marker
+                i += 1
+                continue
+            pieces += [data[done:i], _PAD]
+            done = i
+            if 0xD0 <= nxt <= 0xD7:
+                rst.append(nxt - 0xD0)
+                i += 2
+                continue
+            break
+        scans.append(rst)
+        if i < 0 or i + 1 >= len(data):
+            break
+        pos = i  # the marker after the scan: walked by lengths to the next SOS (or EOI)
+        while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] not in (0xDA, 0xD9):
+            pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
+    pieces.append(data[done:])
+    return b"".join(pieces), scans
+
+
+def check_coded_data(path, buf, header: dict, data: np.ndarray, codec, where: str = "") -> None:
+    """Refuse a JPEG whose coded data ran out before its image did: libjpeg-turbo fills the rest
+    with zero bits and says nothing (a stream cut short with its end marker kept, bytes lost, a
+    flipped byte that threw its Huffman decoding out of step), and resynchronises at a restart
+    marker it did not expect. The stream is decoded once more with :data:`_PAD` before each
+    marker that ends coded data: an undamaged stream's decoder reads none of it (its image ends
+    within its own bits), so any pixel that differs was made of bytes the stream does not hold.
+    The restart markers must count 0 to 7 and round again (T.81 B.2.1). What this cannot find: a
+    byte changed inside coded data whose decoding stays in step (benchmarks/README.md)."""
+    padded, scans = _restart_padded(buf, header)
+    for rst in scans:
+        for k, (a, b) in enumerate(zip([7] + rst, rst)):
+            if b != (a + 1) % 8:
+                raise FormatError(
+                    path,
+                    f"{where}a {describe(header)} stream whose restart markers skip from RST{a} to RST{b} "
+                    f"(marker {k + 1} of its scan): an interval lost, corrupt",
+                )
+    try:
+        again = codec(padded)
+    except Exception:  # its own decoder's error: the padding was read
+        again = None
+    if again is None or again.shape != data.shape or not np.array_equal(again, data):
+        raise FormatError(
+            path,
+            f"{where}a {describe(header)} stream whose coded data ran out before its image did (the decoder "
+            "filled in the rest): truncated or corrupt",
+        )
 
 
 def check_complete(path, buf, header: dict, where: str = "") -> None:
@@ -250,6 +326,15 @@ def check_complete(path, buf, header: dict, where: str = "") -> None:
     grey. (Damage inside the coded data, its length kept, is not found: JPEG has no checksum.)"""
     if bytes(buf).rfind(b"\xff\xd9", header.get("scan", 0)) < 0:
         raise FormatError(path, f"{where}a {describe(header)} stream without its end marker (0xFFD9): truncated")
+    end = header.get("tile_parts_end")
+    if end is not None and bytes(buf[end : end + 2]) != b"\xff\xd9":
+        # a tile-part cut short (or its bytes lost) with the EOC kept, or a Psot running past the data
+        raise FormatError(
+            path,
+            f"{where}a {describe(header)} stream whose tile-parts' lengths (Psot) end at byte {end}, not at its "
+            f"end marker (EOC){' (the stream holds ' + str(len(buf)) + ' bytes)' if end > len(buf) else ''}: "
+            "truncated or corrupt",
+        )
     if header.get("tiles_found", 1) < header.get("tiles", 1):
         raise FormatError(
             path,

@@ -110,8 +110,9 @@ def _set_class(group, nx_class):
     group.attrs["NX_class"] = nx_class
 
 
-#: The C7942SK-02's pixel pitch: the writer's default, and what radiokit assumes for a file or a
-#: protocol that states none (said where it is assumed)
+#: The C7942SK-02's pixel pitch: what radiokit assumes for a file or a protocol that states none
+#: (said where it is assumed). No longer the writer's default: a file of another panel's frames
+#: claimed it as its own
 C7942_PIXEL_SIZE_MM = 0.05
 
 
@@ -134,12 +135,18 @@ class ExperimentWriter:
         ``mode="a"`` reopens an existing file to append.
     shape : (rows, cols)
         Frame shape; required for a new file, checked when appending to an old one.
-    pixel_size_mm : float
-        Detector pixel pitch (written in metres as NeXus wants).
+    pixel_size_mm : float, optional
+        Detector pixel pitch (written in metres as NeXus wants). Not given: none is written, and
+        readers say they assume the C7942's (:data:`C7942_PIXEL_SIZE_MM`): the writer does not
+        know the panel, and a default written as the data's own was taken for it.
+    pixel_size_from : str, optional
+        Where the pitch came from ("the protocol's [detector] pixel_size_mm", "preset c7942"),
+        recorded as the pitch datasets' ``pixel_size_from`` attribute and shown by ``radiokit info``.
     source : dict, optional
         ``name``, ``voltage_kv``, ``current_ua`` of the X-ray source (no ``name``: none recorded).
-    detector_name : str
-        Written to ``instrument/detector/description``.
+    detector_name : str, optional
+        Written to ``instrument/detector/description``; not given, none is written (it had been
+        the C7942SK-02's, claimed for any panel's frames).
     bit_depth : int, optional
         The panel's ADC bits, recorded as NeXus ``bit_depth_readout``: 12 for the C7942, 16 for
         a panel that saturates at 65535. Readers take values above ``2**bit_depth - 1`` for a
@@ -186,9 +193,10 @@ class ExperimentWriter:
         *,
         mode="w",
         overwrite=False,
-        pixel_size_mm=C7942_PIXEL_SIZE_MM,
+        pixel_size_mm=None,
         source=None,
-        detector_name="Hamamatsu C7942SK-02",
+        detector_name=None,
+        pixel_size_from=None,
         title="radiokit experiment",
         bit_depth=None,
         in_place=False,
@@ -201,9 +209,14 @@ class ExperimentWriter:
         if mode == "a" and not self.path.exists():
             raise FileNotFoundError(f"{shown(self.path)}: no experiment file to append to")
         lo, hi = (v * 1e3 for v in PIXEL_SIZE_RANGE_M)
-        if mode == "w" and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
+        if mode == "w" and pixel_size_mm is not None and not (is_number(pixel_size_mm) and lo <= pixel_size_mm <= hi):
             # checked as the readers check it (NaN fails too): a file no reader would open is not begun
             raise ValueError(f"pixel_size_mm={pixel_size_mm!r}: expected a panel's pixel pitch, {lo:g} to {hi:g} mm")
+        if pixel_size_from is not None and (pixel_size_mm is None or not isinstance(pixel_size_from, str)):
+            raise ValueError(f"pixel_size_from={pixel_size_from!r}: expected text saying where pixel_size_mm came from")
+        if detector_name is not None and not isinstance(detector_name, str):
+            raise ValueError(f"detector_name={detector_name!r}: expected the panel's name as text")
+        pitch = None if pixel_size_mm is None else (pixel_size_mm, pixel_size_from)
         self._open(mode, overwrite, in_place, shape)
         try:
             if self._previous is not None:
@@ -213,7 +226,7 @@ class ExperimentWriter:
             if mode == "w":
                 if shape is None:
                     raise ValueError("shape=(rows, cols) is required for a new experiment file")
-                self._create(tuple(int(s) for s in shape), pixel_size_mm, source or {}, detector_name, title)
+                self._create(tuple(int(s) for s in shape), pitch, source or {}, detector_name, title)
                 if bit_depth is not None:
                     self._h5[DETECTOR]["bit_depth_readout"] = int(bit_depth)
             else:
@@ -454,7 +467,7 @@ class ExperimentWriter:
         )
 
     # -- layout -------------------------------------------------------------------------------
-    def _create(self, shape, pixel_size_mm, source, detector_name, title):
+    def _create(self, shape, pitch, source, detector_name, title):
         h5 = self._h5
         h5.attrs["default"] = ENTRY
         h5.attrs["creator"] = "radiokit"
@@ -480,14 +493,18 @@ class ExperimentWriter:
             ds.attrs["units"] = unit
         det = inst.create_group("detector")
         _set_class(det, "NXdetector")
-        det["description"] = detector_name
+        if detector_name is not None:  # fixed-length, as the source's name (see above)
+            det["description"] = np.bytes_(detector_name.encode("utf-8"))
         rows, cols = shape
         data = det.create_dataset(
             "data", shape=(0, rows, cols), maxshape=(None, rows, cols), chunks=(1, rows, cols), dtype=np.uint16
         )
         data.attrs["interpretation"] = "image"
-        for axis in ("x_pixel_size", "y_pixel_size"):
-            det.create_dataset(axis, data=pixel_size_mm * 1e-3).attrs["units"] = "m"
+        for axis in ("x_pixel_size", "y_pixel_size") if pitch is not None else ():
+            ds = det.create_dataset(axis, data=pitch[0] * 1e-3)
+            ds.attrs["units"] = "m"
+            if pitch[1] is not None:
+                ds.attrs["pixel_size_from"] = np.bytes_(pitch[1].encode("utf-8"))
         det.create_dataset("pixel_mask", data=np.zeros(shape, np.uint32), compression="gzip")
         sample = entry.create_group("sample")
         _set_class(sample, "NXsample")
@@ -2047,8 +2064,32 @@ def _read_pixel_sizes(path, h5, meta: dict, allow_external: bool) -> None:
             check_local(path, h5, ds, allow_external)
             meta[name] = _pixel_metres(path, name, ds)
             _check_pixel_size(path, f"/{DETECTOR}/{name}", meta[name])
+            origin = _text(ds.attrs.get("pixel_size_from"))
+            if origin and name == "x_pixel_size":
+                meta["pixel_size_from"] = origin
     if "x_pixel_size" in meta:
         meta["pixel_size_mm"] = meta["x_pixel_size"] * 1e3
+
+
+def _text(value) -> str | None:
+    """``value`` (an attribute or a scalar dataset's value) as text where it is one, else None:
+    an optional record is left out, not refused, when another program put something else there."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    return value if isinstance(value, str) else None
+
+
+def _read_detector_name(path, h5, meta: dict, allow_external: bool) -> None:
+    """``meta["detector"]``: the NXdetector's ``description`` where it is one string (a file of
+    radiokit's writer told no name has none; the old writer's is variable-length, read too)."""
+    name = f"{DETECTOR}/description"
+    check_links(path, h5, name, allow_external)
+    ds = h5.get(name)
+    if isinstance(ds, h5py.Dataset) and ds.shape == () and h5py.check_string_dtype(ds.dtype) is not None:
+        check_local(path, h5, ds, allow_external)
+        text = _text(ds[()])
+        if text:
+            meta["detector"] = text
 
 
 def _check_pixel_dataset(path, name: str, ds) -> None:
@@ -2269,6 +2310,7 @@ def read_experiment_meta(path, h5: h5py.File, allow_external=False, budget=None)
     per_frame = max(frame, math.prod(data.chunks) * data.dtype.itemsize) if data.chunks else frame  # whole chunks
     check_written(path, data, spare_bytes=invalid * per_frame)
     _read_pixel_sizes(path, h5, meta, allow_external)
+    _read_detector_name(path, h5, meta, allow_external)
     name = "pixel_mask"
     check_links(path, h5, f"{DETECTOR}/{name}", allow_external)
     ds = h5[DETECTOR].get(name)
