@@ -5872,14 +5872,7 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
     word = "SCU" if dialect == "B" else "SAR"
     seen = []
-
-    def step():
-        seen.append(model.measured()[1])
-        if seen[-1] >= 0.75 * 250:
-            model.drop_beam()
-        else:
-            now[0] += 0.25
-            model.inject_after(word, step)
+    step = _drop_beam_at(model, word, now, seen, 0.75 * 250)
 
     with (
         PtyServer(model) as server,
@@ -5892,6 +5885,23 @@ def test_a_beam_that_falls_back_while_it_ramps_up_is_switched_off_at_that_readin
     assert seen[-1] >= 0.75 * 250 and model.measured() == (0.0, 0.0), seen
     assert after[0] == "XOF", after  # at the reading that showed it: nothing asked before the switch-off
     assert "X-rays switched off" in str(caught.value) and not model.xray_on
+
+
+def _drop_beam_at(model, word: str, now: list, seen: list, current: float):
+    """A step for ``model.inject_after(word, step)``: after each reading of the current (``word``)
+    it notes the current in ``seen`` and either drops the beam (the current has reached
+    ``current`` µA) or moves the model's clock (``now[0]``) a quarter of a second on and waits for
+    the next reading: a ramp read in steps, with no timing in the test."""
+
+    def step():
+        seen.append(model.measured()[1])
+        if seen[-1] >= current:
+            model.drop_beam()
+        else:
+            now[0] += 0.25
+            model.inject_after(word, step)
+
+    return step
 
 
 def _clock_per_current_reading(model, dialect: str, now: list, step: float) -> None:
@@ -5991,14 +6001,7 @@ def test_a_beam_that_falls_back_after_climbing_to_a_new_setting_is_switched_off_
     model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=1.0, clock=lambda: now[0])
     word = "SCU" if dialect == "B" else "SAR"
     seen = []
-
-    def step():
-        seen.append(model.measured()[1])
-        if seen[-1] >= 100 + 0.75 * (250 - 100):
-            model.drop_beam()
-        else:
-            now[0] += 0.25
-            model.inject_after(word, step)
+    step = _drop_beam_at(model, word, now, seen, 100 + 0.75 * (250 - 100))
 
     with (
         PtyServer(model) as server,
