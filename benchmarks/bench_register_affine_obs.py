@@ -27,6 +27,11 @@ BENCHES = ("phantoms", "flag", "textureless")
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--prior", type=float, required=True, help="the gradient's prior standard deviation (px/px)")
+    ap.add_argument(
+        "--interior-only",
+        action="store_true",
+        help="the affine map for the interior's observed share alone (_confidence.AFFINE_INTERIOR_ONLY)",
+    )
     ap.add_argument("bench", choices=BENCHES)
     a, rest = ap.parse_known_args(argv)
     if not a.prior > 0:
@@ -34,7 +39,8 @@ def main(argv=None) -> int:
     from radiokit.register import _confidence as C
 
     C.AFFINE_PRIOR = a.prior
-    print(f"map: local affine bound, prior {a.prior} px/px", flush=True)
+    C.AFFINE_INTERIOR_ONLY = a.interior_only
+    print(f"map: local affine bound, prior {a.prior} px/px, interior only: {a.interior_only}", flush=True)
     if a.bench == "phantoms":
         from bench_register_phantoms import main as run
     elif a.bench == "flag":

@@ -98,3 +98,18 @@ def test_the_map_with_the_affine_bound_leaves_a_bodys_rim_unobserved_and_a_textu
             conf = C.observability(f.astype(np.float32), S, affine_prior=affine).confidence
             share = float(np.mean(conf[rim] >= 0.5))
             assert (share > 0.9) if observed else (share < 0.1), (affine, share)
+
+
+def test_the_affine_map_carries_the_translation_map_beside_it_for_the_other_checks():
+    # AFFINE_INTERIOR_ONLY reads the interior's share from the affine map and every other check
+    # from the translation map: that map must be the library's map without the affine bound
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[:200, :200].astype(np.float64)
+    f = (1 / (1 + np.exp((np.hypot(yy - 100, xx - 100) - 70) / 1.5)) + 0.01 * rng.standard_normal(yy.shape)).astype(
+        np.float32
+    )
+    plain = C.observability(f, S)
+    affine = C.observability(f, S, affine_prior=0.01)
+    assert plain.translation is None
+    np.testing.assert_array_equal(affine.translation, plain.confidence)
+    assert np.all(affine.confidence <= plain.confidence + 1e-6)

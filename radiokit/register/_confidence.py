@@ -159,6 +159,8 @@ class Observability:
     #: within :data:`PINNED_REACH` spacings of the pixel (see the module docstring, "Where the
     #: field is pinned"; measured, not what a registration carries)
     pinned: np.ndarray | None = None
+    #: with the affine bound (``affine_prior``), the map without it (translation alone)
+    translation: np.ndarray | None = None
 
 
 def _gauss(a, s):
@@ -415,6 +417,9 @@ def one_directional(f, spacing, highpass=0.25) -> np.ndarray:
 #: affine observability"): None (off), or the prior standard deviation ``s`` of each element of a
 #: window's displacement gradient (px per px; see :func:`affine_lmins`)
 AFFINE_PRIOR = None
+#: with AFFINE_PRIOR: the affine map for the interior's observed share alone, the translation map
+#: for every other check (misaligned share, residual motion, the body-scale waiver): measured
+AFFINE_INTERIOR_ONLY = False
 
 
 def _moment_kernel(s, a) -> np.ndarray:
@@ -579,7 +584,9 @@ def observability(
     lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
     prior = AFFINE_PRIOR if affine_prior is None else affine_prior
+    translation = None
     if prior is not None:
+        translation = _confidence(info, bound_scale, flat_common(f, moving) if moving is not None else None)[0]
         info = np.minimum(info, _affine_info(f, spacing, highpass, sig2, floor2, mask, prior))
     flat = flat_common(f, moving) if moving is not None else None
     conf, bound = _confidence(info, bound_scale, flat)
@@ -591,7 +598,7 @@ def observability(
     if mask is not None:
         obj &= np.asarray(mask, bool)
     sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf, bound, sigma, obj, pinned_conf)
+    return Observability(conf, bound, sigma, obj, pinned_conf, translation)
 
 
 def _affine_info(f, spacing, highpass, sig2, floor2, mask, prior):
