@@ -1023,6 +1023,11 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     judged = obs if out is None else obs & ~out
     q.observed_fraction = float(judged.sum() / n_obj) if n_obj else 0.0
     q.interior_observed = float(judged[inner].mean()) if inner.any() else q.observed_fraction
+    from radiokit.register import _confidence as C
+
+    if ob.translation is not None and C.AFFINE_INTERIOR_ONLY:  # measured, off (benchmarks/README.md)
+        obs_t = (ob.translation >= 0.5) & ob.object
+        judged = obs_t if out is None else obs_t & ~out
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, judged)
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)

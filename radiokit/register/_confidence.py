@@ -159,6 +159,8 @@ class Observability:
     #: within :data:`PINNED_REACH` spacings of the pixel (see the module docstring, "Where the
     #: field is pinned"; measured, not what a registration carries)
     pinned: np.ndarray | None = None
+    #: with the affine bound (``affine_prior``), the map without it (translation alone)
+    translation: np.ndarray | None = None
 
 
 def _gauss(a, s):
@@ -411,6 +413,99 @@ def one_directional(f, spacing, highpass=0.25) -> np.ndarray:
     return lmin * WINDOW_REACH**2 < lmax
 
 
+#: ``observability``'s local affine bound (session 55; measured, see benchmarks/README.md, "Local
+#: affine observability"): None (off), or the prior standard deviation ``s`` of each element of a
+#: window's displacement gradient (px per px; see :func:`affine_lmins`)
+AFFINE_PRIOR = None
+#: with AFFINE_PRIOR: the affine map for the interior's observed share alone, the translation map
+#: for every other check (misaligned share, residual motion, the body-scale waiver): measured
+AFFINE_INTERIOR_ONLY = False
+
+
+def _moment_kernel(s, a) -> np.ndarray:
+    """One axis of the map's window times ``(u / s)^a`` (``u`` the offset from the window's centre,
+    px), normalised by the window's sum (float32)."""
+    k = _window_kernel(s)
+    u = np.arange(-(len(k) // 2), len(k) // 2 + 1, dtype=np.float64) / s
+    return (k * u**a / k.sum()).astype(np.float32)
+
+
+def affine_lmins(gy, gx, spacing, bias, precision, step=1) -> tuple[np.ndarray, np.ndarray]:
+    """``(lmin_translation, lmin_affine)``: the smaller eigenvalue of a window's information on its
+    centre's translation, (1) the map's (the gradients' covariance over the window: a translation
+    with an intensity offset beside it) and (2) the same translation's *marginal* information when
+    the window moves by a local affine field about its centre, ``d(c + u) = t + A u`` (6
+    parameters; the offset still beside): the Schur complement of ``A``'s block in the 7 x 7
+    Fisher matrix, ``F_tt - F_tA (F_AA + P)^-1 F_At``. Both per unit noise variance and per unit
+    window weight (the map's normalised window means), so ``window area x lmin / (2 sigma^2)`` is
+    the information. ``gy, gx``: the gradients the map uses; ``bias``: the noise's share of each
+    squared derivative (per pixel, or a scalar); ``precision``: ``P``'s diagonal, the prior
+    precision of each element of ``A`` in units of ``(px per window sigma)^-2`` per unit window
+    weight and noise variance (per pixel, or a scalar; 0: no prior). ``step``: both on every
+    ``step``-th pixel from ``step // 2`` in each direction (the 6 x 6 systems cost 10x the filters
+    at every pixel; the window's moments vary over its sigma, not a pixel).
+
+    A window moving as a whole is a translation; a field free at the window's scale moves it by a
+    translation and a gradient. On a rim of radius ``R`` the window sees only the normal
+    displacement along the arc, ``n(s) ~ n0 + s (t_tangential / R + A_normal,tangential) + ...``:
+    the tangential translation is aliased with the displacement's tangential gradient, and its
+    marginal bound is ``R`` times that gradient's (its prior's) standard deviation. A disc seen
+    whole at the window's centre, a corner or a texture keep it.
+
+    Every moment is a filtered image: ``sum_u w(u) u^a v^b h(c + u)`` is a separable filter with
+    the kernel ``w(u) u^a`` along one axis and ``w(v) v^b`` along the other (``u`` in window
+    sigmas, so the moments are O(1) in float32). 24 filters (three gradient products at six
+    moments, two gradients at three) and a batched 4 x 4 solve."""
+    import cv2
+
+    s = float(spacing)
+    ks = [_moment_kernel(s, a) for a in range(3)]
+    moments = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))  # (a along y, b along x)
+
+    def filt(h, a, b):
+        out = cv2.sepFilter2D(h, cv2.CV_32F, ks[b], ks[a], borderType=cv2.BORDER_REFLECT)
+        return out[o::step, o::step].astype(np.float64)
+
+    o = step // 2
+    sub = (slice(o, None, step), slice(o, None, step))
+
+    gy, gx = np.asarray(gy, np.float32), np.asarray(gx, np.float32)
+    prods = {("y", "y"): gy * gy, ("y", "x"): gy * gx, ("x", "x"): gx * gx}
+    mom = {(p, ab): filt(h, *ab) for p, h in prods.items() for ab in moments}
+    first = {(c, ab): filt(h, *ab) for c, h in (("y", gy), ("x", gx)) for ab in moments[:3]}
+    # parameters: t_y, t_x, A_yu, A_yv, A_xu, A_xv (u along y, v along x): sensitivities g_c poly
+    params = (("y", (0, 0)), ("x", (0, 0)), ("y", (1, 0)), ("y", (0, 1)), ("x", (1, 0)), ("x", (0, 1)))
+    mu20 = float(ks[2].sum() * ks[0].sum())  # the window's second moment along one axis (u in sigmas)
+    shape = gy[sub].shape
+    if np.ndim(bias):
+        bias = np.asarray(bias, np.float64)[sub]
+    if np.ndim(precision):
+        precision = np.asarray(precision, np.float64)[sub]
+    F = np.empty(shape + (6, 6))
+    for i, (ci, pi) in enumerate(params):
+        for j, (cj, pj) in enumerate(params):
+            if j < i:
+                continue
+            key = (ci, cj) if (ci, cj) in prods else (cj, ci)
+            ab = (pi[0] + pj[0], pi[1] + pj[1])
+            v = mom[(key, ab)] - first[(ci, pi)] * first[(cj, pj)]
+            if ci == cj and pi == pj:  # the noise's share of a squared derivative
+                v = v - bias * (1.0 if pi == (0, 0) else mu20)
+            F[..., i, j] = F[..., j, i] = v
+    Ftt, FtA, FAA = F[..., :2, :2], F[..., :2, 2:], F[..., 2:, 2:]
+    eye = np.eye(4)
+    ridge = 1e-9 * (np.trace(FAA, axis1=-2, axis2=-1)[..., None, None] + 1e-30)
+    prec = np.asarray(precision, np.float64)
+    FAA = FAA + (prec[..., None, None] if prec.ndim else prec) * eye + ridge * eye
+    S = Ftt - FtA @ np.linalg.solve(FAA, np.swapaxes(FtA, -1, -2))
+
+    def smaller(m):
+        tr, det = m[..., 0, 0] + m[..., 1, 1], m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] ** 2
+        return np.maximum(0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0)), 0)
+
+    return smaller(Ftt), smaller(S)
+
+
 def model_floor(f) -> float:
     """``MODEL_FLOOR`` of the image's range (1st to 99th percentile, from ~250k samples): the
     noise level below which nothing counts as noise (see MODEL_FLOOR)."""
@@ -465,7 +560,7 @@ def flat_common(fixed, moving) -> np.ndarray:
 
 
 def observability(
-    fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None, pinned=False
+    fixed, spacing, mask=None, bound_scale=1.0, highpass=0.25, moving=None, pinned=False, affine_prior=None
 ) -> Observability:
     """The confidence map of registering onto ``fixed`` with a lattice ``spacing`` px apart
     (see the module docstring); ``bound_scale`` multiplies the bound (``register()`` passes the
@@ -474,7 +569,10 @@ def observability(
     within the window's reach: that structure is the flat region's own edge, fixed on the
     detector, and it would call a band of two windows' width observed (session 41's review: 84 %
     of a 120-row band across a moving body, whose field there was worse than none). ``pinned``:
-    also ``Observability.pinned`` (see the module docstring, "Where the field is pinned")."""
+    also ``Observability.pinned`` (see the module docstring, "Where the field is pinned").
+    ``affine_prior`` (None: :data:`AFFINE_PRIOR`, itself None: off): also bound each window's
+    centre under a local affine motion (:func:`_affine_info`), the map's information the smaller
+    of the two."""
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
@@ -485,6 +583,11 @@ def observability(
     lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,))
     lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
+    prior = AFFINE_PRIOR if affine_prior is None else affine_prior
+    translation = None
+    if prior is not None:
+        translation = _confidence(info, bound_scale, flat_common(f, moving) if moving is not None else None)[0]
+        info = np.minimum(info, _affine_info(f, spacing, highpass, sig2, floor2, mask, prior))
     flat = flat_common(f, moving) if moving is not None else None
     conf, bound = _confidence(info, bound_scale, flat)
     pinned_conf = None
@@ -495,7 +598,36 @@ def observability(
     if mask is not None:
         obj &= np.asarray(mask, bool)
     sigma = float(np.median(sig_map[obj])) if obj.any() else float(np.median(sig_map))
-    return Observability(conf, bound, sigma, obj, pinned_conf)
+    return Observability(conf, bound, sigma, obj, pinned_conf, translation)
+
+
+def _affine_info(f, spacing, highpass, sig2, floor2, mask, prior):
+    """A window centre's information on its translation when the window moves by a local affine
+    field (:func:`affine_lmins`), in the map's units; ``prior``: the prior standard deviation of
+    each element of the displacement's gradient (px per px; a field of amplitude ``a`` and
+    correlation length ``L`` has gradients of about ``a / L``). The noise-only floor is the
+    translation's (:func:`_noise_lmin`): a marginal of pure noise is no larger, so this errs
+    towards unobserved."""
+    hp = f - _gauss(f, highpass * spacing)
+    gy, gx = np.gradient(_gauss(hp, 1.0))
+    bias = _deriv_noise_var(1.0) * sig2
+    if mask is not None:
+        inside = np.asarray(mask, np.float32)
+        gy, gx = gy * inside, gx * inside
+        bias = bias * _window(inside, spacing)
+    area = _window_area(spacing)
+    s2 = sig2 + floor2
+    precision = 2 * s2 / (area * (float(prior) * spacing) ** 2)  # 1 / (prior x spacing)^2 in the moments' units
+    step = max(1, int(spacing) // 6)
+    _, la = affine_lmins(gy, gx, spacing, bias, precision, step)
+    if step > 1:  # back to every pixel: the coarse samples at step // 2 + i step
+        import cv2
+
+        n0, n1 = f.shape
+        la = cv2.resize(la.astype(np.float32), (la.shape[1] * step, la.shape[0] * step), interpolation=cv2.INTER_LINEAR)
+        la = np.pad(la, ((0, max(0, n0 - la.shape[0])), (0, max(0, n1 - la.shape[1]))), mode="edge")[:n0, :n1]
+    la = np.maximum(la - _noise_lmin(spacing, highpass) * sig2, 0)
+    return (area * la / (2 * s2)).astype(np.float32)
 
 
 def _confidence(info, bound_scale, flat=None):

@@ -1,0 +1,115 @@
+"""A window's translation bound under a local affine motion (session 55; benchmarks/README.md,
+"Local affine observability").
+
+``_confidence.affine_lmins`` returns a window's information on its centre's translation, as the
+map takes it (the window translated whole) and as the marginal of a local affine motion
+``t + A u`` about the centre. Closed-form cases, noise-free images, the window of the map
+(sigma 24 px, cut at 48):
+
+- a straight edge observes no tangential translation either way (both smaller eigenvalues 0);
+- a disc seen whole at the window's centre: by symmetry no affine term correlates with the
+  translation, so the marginal equals the translation's, and both equal half the window's mean
+  squared gradient (an isotropic tensor);
+- an arc of radius R >> the window: its normal displacement along the arc, ``n(s) ~ n0 + s
+  (t_tangential / R + A_nt)``, aliases the tangential translation with the displacement's
+  tangential gradient to first order (third order breaks it: a large, finite bound). With a prior
+  of standard deviation ``p`` on each gradient element, the bound tends to ``R p`` where that is
+  far under the data's own;
+- an isotropic texture: the affine terms hardly correlate with the translation (within 10 %).
+"""
+
+import numpy as np
+
+from radiokit.register import _confidence as C
+
+S = 24.0  # the map's window (px)
+N = 241
+C0 = N // 2
+
+
+def _grads(f):
+    return np.gradient(C._gauss(np.asarray(f, np.float32), 1.0))
+
+
+def _bounds(f, s2, prior=None):
+    """(translation bound, affine bound) at the centre, px, noise variance ``s2``."""
+    gy, gx = _grads(f)
+    area = C._window_area(S)
+    prec = 0.0 if prior is None else 2 * s2 / (area * (prior * S) ** 2)
+    lt, la = C.affine_lmins(gy, gx, S, 0.0, prec)
+
+    def bound(lm):
+        return 1 / np.sqrt(max(area * float(lm[C0, C0]) / (2 * s2), 1e-300))
+
+    return bound(lt), bound(la), gy, gx
+
+
+def _grid():
+    return np.mgrid[:N, :N].astype(np.float64)
+
+
+def test_a_straight_edge_observes_no_tangential_translation_under_either_model():
+    yy, xx = _grid()
+    gy, gx = _grads(np.tanh((xx - C0) / 2.0))
+    lt, la = C.affine_lmins(gy, gx, S, 0.0, 0.0)
+    normal = float(C._window(gx * gx, S)[C0, C0])
+    assert lt[C0, C0] < 1e-6 * normal and la[C0, C0] < 1e-6 * normal
+
+
+def test_a_disc_seen_whole_at_the_centre_keeps_its_translation_bound():
+    yy, xx = _grid()
+    disc = 1 / (1 + np.exp((np.hypot(yy - C0, xx - C0) - 30.0) / 1.0))
+    gy, gx = _grads(disc)
+    lt, la = C.affine_lmins(gy, gx, S, 0.0, 0.0)
+    half_mean_sq = 0.5 * float(C._window(gy * gy + gx * gx, S)[C0, C0])
+    assert abs(lt[C0, C0] / half_mean_sq - 1) < 0.02  # isotropic: half the trace each way
+    assert abs(la[C0, C0] / lt[C0, C0] - 1) < 0.02
+
+
+def test_an_arc_aliases_the_tangential_translation_with_the_fields_gradient():
+    yy, xx = _grid()
+    radius = 200.0
+    arc = 1 / (1 + np.exp((np.hypot(yy - C0 - radius, xx - C0) - radius) / 1.0))
+    s2 = 1e-4
+    b_t, b_free, *_ = _bounds(arc, s2)
+    assert b_free > 10 * b_t  # the curvature's tangential information is the rotation's
+    prior = 0.002  # R x prior = 0.4 px, well under the data's own affine bound (~1.5 px)
+    _, b_prior, *_ = _bounds(arc, s2, prior)
+    expected = 1 / np.sqrt(1 / (radius * prior) ** 2 + 1 / b_free**2)
+    assert abs(b_prior / expected - 1) < 0.1
+
+
+def test_an_isotropic_texture_keeps_its_translation_bound():
+    tex = C._gauss(np.random.default_rng(0).standard_normal((N, N)).astype(np.float32), 2.0)
+    gy, gx = _grads(tex)
+    lt, la = C.affine_lmins(gy, gx, S, 0.0, 0.0)
+    assert 0.9 < la[C0, C0] / lt[C0, C0] <= 1.0 + 1e-6
+
+
+def test_the_map_with_the_affine_bound_leaves_a_bodys_rim_unobserved_and_a_texture_observed():
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:320, :320].astype(np.float64)
+    body = 1 / (1 + np.exp((np.hypot(yy - 160, xx - 160) - 120) / 1.5))
+    noise = 0.01 * rng.standard_normal(body.shape)
+    tex = C._gauss(rng.standard_normal(body.shape).astype(np.float32), 2.0) * 0.2
+    rim = np.abs(np.hypot(yy - 160, xx - 160) - 120) < 4
+    for f, want in ((body + noise, (True, False)), (body * (1 + tex) + noise, (True, True))):
+        for affine, observed in zip((None, 0.03), want, strict=True):
+            conf = C.observability(f.astype(np.float32), S, affine_prior=affine).confidence
+            share = float(np.mean(conf[rim] >= 0.5))
+            assert (share > 0.9) if observed else (share < 0.1), (affine, share)
+
+
+def test_the_affine_map_carries_the_translation_map_beside_it_for_the_other_checks():
+    # AFFINE_INTERIOR_ONLY reads the interior's share from the affine map and every other check
+    # from the translation map: that map must be the library's map without the affine bound
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[:200, :200].astype(np.float64)
+    f = (1 / (1 + np.exp((np.hypot(yy - 100, xx - 100) - 70) / 1.5)) + 0.01 * rng.standard_normal(yy.shape)).astype(
+        np.float32
+    )
+    plain = C.observability(f, S)
+    affine = C.observability(f, S, affine_prior=0.01)
+    assert plain.translation is None
+    np.testing.assert_array_equal(affine.translation, plain.confidence)
+    assert np.all(affine.confidence <= plain.confidence + 1e-6)
