@@ -264,26 +264,33 @@ def _restart_padded(buf, header: dict) -> tuple[bytes, list[list[int]]]:
     done = 0
     while pos + 4 <= len(data) and data[pos : pos + 2] == b"\xff\xda":  # an SOS: its header, then coded data
         i, rst = pos + 2 + int.from_bytes(data[pos + 2 : pos + 4], "big"), []
-        while (i := data.find(b"\xff", i)) >= 0 and i + 1 < len(data):
-            nxt = data[i + 1]
-            if nxt == 0x00:  # stuffed
-                i += 2
+        while (i := data.find(b"\xff", i)) >= 0:
+            j = i + 1  # past any fill bytes (0xFF, T.81 B.1.1.2) to the byte they lead to
+            while j < len(data) and data[j] == 0xFF:
+                j += 1
+            if j >= len(data):
+                i = -1
+                break
+            if data[j] == 0x00:  # stuffed (a decoder swallows fill bytes before the 0x00 too)
+                i = j + 1
                 continue
-            if nxt == 0xFF:  # a fill byte before a marker
-                i += 1
-                continue
+            # the padding goes before the fill bytes: after them it made 0xFF and its first byte
+            # a marker that is none, and a valid stream was refused
             pieces += [data[done:i], _PAD]
             done = i
-            if 0xD0 <= nxt <= 0xD7:
-                rst.append(nxt - 0xD0)
-                i += 2
+            if 0xD0 <= data[j] <= 0xD7:
+                rst.append(data[j] - 0xD0)
+                i = j + 1
                 continue
             break
         scans.append(rst)
-        if i < 0 or i + 1 >= len(data):
+        if i < 0:
             break
-        pos = i  # the marker after the scan: walked by lengths to the next SOS (or EOI)
+        pos = j - 1  # the marker after the scan: walked by lengths to the next SOS (or EOI)
         while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] not in (0xDA, 0xD9):
+            if data[pos + 1] == 0xFF:  # fill bytes before a segment's marker
+                pos += 1
+                continue
             pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
     pieces.append(data[done:])
     return b"".join(pieces), scans
@@ -307,6 +314,11 @@ def check_coded_data(path, buf, header: dict, data: np.ndarray, codec, where: st
                     f"{where}a {describe(header)} stream whose restart markers skip from RST{a} to RST{b} "
                     f"(marker {k + 1} of its scan): an interval lost, corrupt",
                 )
+    if "arithmetic" in header["process"]:
+        # not for arithmetic coding: its decoder reads zero bits past a marker, and its encoder
+        # drops the trailing zero bytes of its last symbols for it (T.81 D.1.8, F.2.2.5): an
+        # undamaged stream's last symbols are decoded from the padding, and it was refused
+        return
     try:
         again = codec(padded)
     except Exception:  # its own decoder's error: the padding was read
