@@ -225,3 +225,16 @@ def test_a_jpeg_with_fill_bytes_before_its_markers_reads_as_without_them(tmp_pat
     with pytest.warns(LossyWarning):
         data = read(path).data[0]
     np.testing.assert_array_equal(data, imagecodecs.jpeg8_decode(stream))
+
+
+def test_the_budget_counts_the_second_decode_of_a_jpeg(tmp_path):
+    """:func:`check_coded_data` decodes a JPEG twice and holds both images to compare them (and
+    the padded copy of its stream): a budget that one image fits, and not two, is not enough."""
+    frame = _frame(shape=(256, 256))
+    stream = bytes(JPEGS["ljpeg SV1"](frame))
+    path = tmp_path / "twice.jpg"
+    path.write_bytes(stream)
+    image = frame.nbytes
+    with pytest.raises(FormatError, match=r"twice\.jpg: .*memory budget"):
+        read(path, budget=int(1.5 * image)).data  # noqa: B018
+    np.testing.assert_array_equal(read(path, budget=2 * image + 2 * len(stream)).data[0], frame)
