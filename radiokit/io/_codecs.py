@@ -394,6 +394,16 @@ def warn_lossy(path, what: str) -> None:
     warnings.warn(said, stacklevel=5)
 
 
+def check_bytes(header: dict, stored: int) -> int:
+    """What :func:`check_coded_data` allocates beside the decode (``stored``: the stream's bytes):
+    its second image, held with the first to compare them, and the padded stream (its pieces, then
+    joined: twice the stream's bytes)."""
+    if header["codec"] != "jpeg" or "arithmetic" in header["process"]:
+        return 0
+    samples = header["width"] * header["height"] * header["components"]
+    return samples * out_dtype(header).itemsize + 2 * stored
+
+
 def check_file_header(path, header: dict, budget) -> None:
     """Refuse, before decoding, a file declaring more than the budget, a colour space of neither
     one nor three components, or samples over 16 bits."""
@@ -403,7 +413,10 @@ def check_file_header(path, header: dict, budget) -> None:
             path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
         )
     what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
-    check_budget(path, decoded, what, budget)
+    extra = check_bytes(header, os.path.getsize(path))
+    check_budget(
+        path, decoded + extra, what + (", decoded twice (the second checks its coded data)" if extra else ""), budget
+    )
     # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
     codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
     check_proportion(path, what, decoded, decoded, os.path.getsize(path), codec, budget)
