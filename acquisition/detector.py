@@ -329,7 +329,10 @@ class FolderWatcher:
             "pattern": self.pattern,
             "shape": list(self.shape) if self.shape is not None else None,
             "preset": self.preset,
-            "pixel_size_mm": self.pixel_size_mm,
+            # as the file's pitch: none where it is only assumed (the run's record stated it as
+            # the watcher's own, beside a file that records none)
+            "pixel_size_mm": self.pixel_size_mm if self.pixel_size_from is not None else None,
+            "pixel_size_from": self.pixel_size_from,
             "bits": self.bits,
             "timeout_s": self.timeout_s,
             "settle_s": self.settle_s,

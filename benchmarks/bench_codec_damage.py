@@ -95,10 +95,24 @@ def cell(results: list[str]) -> str:
     return "/".join(str(results.count(k)) for k in ("refused", "same", "WRONG"))
 
 
+def with_fill_bytes(stream: bytes) -> bytes:
+    """``stream`` with two fill bytes before each marker after its first scan's header."""
+    first = bytes_header(stream)["scan"] + 2
+    out, i = bytearray(stream[:first]), first
+    while (j := stream.find(b"\xff", i)) >= 0 and j + 1 < len(stream):
+        out += stream[i:j]
+        if stream[j + 1] not in (0x00, 0xFF):
+            out += b"\xff\xff"
+        out += stream[j : j + 2]
+        i = j + 2
+    return bytes(out + stream[i:])
+
+
 def false_refusals(n: int = 60) -> tuple[int, int]:
     """Undamaged JPEGs of many kinds (Pillow's baseline, progressive, optimised and restart-marked
     8-bit streams, grey and RGB; imagecodecs' lossless and 12-bit DCT ones), sides of 1 to 89
-    pixels, noisy, constant and ramp content: how many the coded-data check refuses, of how many."""
+    pixels, noisy, constant and ramp content, each also with fill bytes before its markers: how
+    many the coded-data check refuses, of how many."""
     import io
 
     from PIL import Image
@@ -126,6 +140,9 @@ def false_refusals(n: int = 60) -> tuple[int, int]:
             imagecodecs.jpeg8_encode(a16, lossless=True, bitspersample=12, predictor=int(rng.integers(1, 8))),
             imagecodecs.jpeg8_encode(a16, level=int(rng.integers(10, 100)), bitspersample=12),
         ]
+    # each again with fill bytes (0xFF, T.81 B.1.1.2) before every marker after its first scan
+    # header: valid, and refused until review s55rvoff (the padding went between them and the marker)
+    streams += [with_fill_bytes(bytes(s)) for s in streams]
     for s in streams:
         s = bytes(s)
         try:

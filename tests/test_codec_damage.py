@@ -140,3 +140,101 @@ def test_info_on_a_damaged_jpeg_is_one_line_naming_the_file(tmp_path):
     assert res.returncode != 0
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "cut.jpg" in lines[0] and "Traceback" not in res.stderr
+
+
+# Two arithmetic-coded streams libjpeg-turbo's cjpeg made (tests hold no encoder of them): a 16x24
+# ramp, ``cjpeg -quality 95 -arithmetic -restart 1B``, and 16x16 noise, ``cjpeg -quality 90
+# -arithmetic -progressive``. The arithmetic decoder reads zero bits once it meets a marker, and
+# the encoder drops its code register's trailing zero bytes for it (T.81 D.1.8, F.2.2.5): such a
+# stream's last symbols are decoded from the bytes that follow its coded data, where a Huffman
+# stream's never are
+_ARITHMETIC = {
+    "restarts": (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAAIBAQEBAQIBAQECAgICAgQDAgICAgUEBAMEBgUGBgYFBgYGBwkIBgcJBwYGCAsICQoK"
+        "CgoKBggLDAsKDAkKCgr/yQALCAAQABgBAREA/8wABgAQEAX/3QAEAAH/2gAIAQEAAD8A/wDcaQD30mKMei2N82496pJP/wD4pPwD"
+        "Tox+V6X6weIh/9DPxWcmRurQosMXuC+mpexva2PJx01V2EV+842xiOoLgijA/9HS2Tkhr3E/vg+4u+2MBtcywhePJIGeKNz5gkSY"
+        "M9t5C4ae6P/S/wChrUZlLQo7iShpjTk1s3aKieZJ+IdDAY3z8gerguERQP/T0srUXISaFiCFuf1LS39EqjMtB3afdSE4Ry6Ff00a"
+        "QHX3QBIG/9TS4FNQ6quzfHMX1JsAX7A9O/UVGMI677Pj/CYH632d6ugDAf/Z"
+    ),
+    "progressive": (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAAMCAgMCAgMDAwMEAwMEBQgFBQQEBQoHBwYIDAoMDAsKCwsNDhIQDQ4RDgsLEBYQERMU"
+        "FRUVDA8XGBYUGBIUFRT/ygALCAAQABABAREA/8wABAAQ/9oACAEBAAAAAdHPXnZQ/8wABBAF/9oACAEBAAEFAhUrz4OztQ2J3zt+"
+        "sIieFrX/zAAEEAX/2gAIAQEABj8CHjj8iO/oHMWFlkH3Z08JDYbLamrJdOMM8zOg+e5vJ/hPkFEoh4Srj8x/3kBm2TbnL2kfiV0Y"
+        "7MR2i9vZ5gk9OKLakQgitoeftMug+VC0vMt1ImYDlGQkPeJbfZH/zAAEEAX/2gAIAQEAAT8h7RgLeSiCqjLjZKx1tqq3Y4cNDhS4"
+        "2Nk95+ZbBMtUqpwYykQTVUB8UCkEjRD/2gAIAQEAAAAQ4P/MAAQQBf/aAAgBAQABPxCmtzLZJXvXMq7XNyRlTomSE5mKperYdzji"
+        "AN3FROwRVBuGXDjiYPFc/9k="
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", list(_ARITHMETIC))
+def test_an_undamaged_arithmetic_coded_jpeg_reads_as_its_decoder_gives_it(tmp_path, kind):
+    import base64
+
+    stream = base64.b64decode(_ARITHMETIC[kind])
+    assert "arithmetic" in bytes_header(stream)["process"]
+    path = tmp_path / "arith.jpg"
+    path.write_bytes(stream)
+    with pytest.warns(LossyWarning):
+        data = read(path).data[0]
+    np.testing.assert_array_equal(data, imagecodecs.jpeg8_decode(stream))
+    if kind == "restarts":  # the restart markers' order is still checked: an interval lost is found
+        rst = [stream.find(bytes([0xFF, 0xD0 + k])) for k in range(3)]
+        holed = tmp_path / "holed.jpg"
+        holed.write_bytes(stream[: rst[1]] + stream[rst[2] :])
+        _refused(holed, "restart")
+
+
+def _pillow_progressive() -> bytes:
+    from PIL import Image
+
+    a = np.random.default_rng(2).integers(0, 255, (64, 64)).astype(np.uint8)
+    out = io.BytesIO()
+    Image.fromarray(a).save(out, "JPEG", quality=90, progressive=True)
+    return out.getvalue()
+
+
+def _with_fill_bytes(stream: bytes) -> bytes:
+    """``stream`` with two fill bytes (0xFF, T.81 B.1.1.2: any marker may follow any number of
+    them) before each marker after its first scan's header: each RSTn, and each segment between
+    the scans and the EOI."""
+    first = bytes_header(stream)["scan"] + 2
+    out, i = bytearray(stream[:first]), first
+    while (j := stream.find(b"\xff", i)) >= 0 and j + 1 < len(stream):
+        out += stream[i:j]
+        if stream[j + 1] not in (0x00, 0xFF):
+            out += b"\xff\xff"
+        out += stream[j : j + 2]
+        i = j + 2
+    return bytes(out + stream[i:])
+
+
+@pytest.mark.parametrize("kind", ["baseline", "restarts", "progressive"])
+def test_a_jpeg_with_fill_bytes_before_its_markers_reads_as_without_them(tmp_path, kind):
+    stream = {
+        "baseline": lambda: bytes(JPEGS["JPEG12 q90"](_frame())),
+        "restarts": lambda: _pillow_jpeg(4),
+        "progressive": _pillow_progressive,
+    }[kind]()
+    filled = _with_fill_bytes(stream)
+    assert len(filled) >= len(stream) + 2  # (a baseline stream: only its EOI)
+    # the decoder reads the fill bytes as nothing: the stream is as valid as it was
+    np.testing.assert_array_equal(imagecodecs.jpeg8_decode(filled), imagecodecs.jpeg8_decode(stream))
+    path = tmp_path / "filled.jpg"
+    path.write_bytes(filled)
+    with pytest.warns(LossyWarning):
+        data = read(path).data[0]
+    np.testing.assert_array_equal(data, imagecodecs.jpeg8_decode(stream))
+
+
+def test_the_budget_counts_the_second_decode_of_a_jpeg(tmp_path):
+    """:func:`check_coded_data` decodes a JPEG twice and holds both images to compare them (and
+    the padded copy of its stream): a budget that one image fits, and not two, is not enough."""
+    frame = _frame(shape=(256, 256))
+    stream = bytes(JPEGS["ljpeg SV1"](frame))
+    path = tmp_path / "twice.jpg"
+    path.write_bytes(stream)
+    image = frame.nbytes
+    with pytest.raises(FormatError, match=r"twice\.jpg: .*memory budget"):
+        read(path, budget=int(1.5 * image)).data  # noqa: B018
+    np.testing.assert_array_equal(read(path, budget=2 * image + 3 * len(stream)).data[0], frame)

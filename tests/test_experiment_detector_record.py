@@ -93,3 +93,8 @@ def test_the_folder_watcher_says_where_its_pitch_came_from(tmp_path, kw, shape, 
     det = FolderWatcher(tmp_path, "*.tif", shape=shape, **kw)
     assert det.pixel_size_from == said
     assert det.panel_name == "Hamamatsu C7942SK-02"
+    # the run's record of its devices (/entry@devices) claims no more than the file's pitch does:
+    # an assumed 0.05 mm stood there as the watcher's own
+    described = det.describe()
+    assert described["pixel_size_from"] == said
+    assert described["pixel_size_mm"] == (None if said is None else pytest.approx(det.pixel_size_mm, rel=1e-12))

@@ -264,26 +264,33 @@ def _restart_padded(buf, header: dict) -> tuple[bytes, list[list[int]]]:
     done = 0
     while pos + 4 <= len(data) and data[pos : pos + 2] == b"\xff\xda":  # an SOS: its header, then coded data
         i, rst = pos + 2 + int.from_bytes(data[pos + 2 : pos + 4], "big"), []
-        while (i := data.find(b"\xff", i)) >= 0 and i + 1 < len(data):
-            nxt = data[i + 1]
-            if nxt == 0x00:  # stuffed
-                i += 2
+        while (i := data.find(b"\xff", i)) >= 0:
+            j = i + 1  # past any fill bytes (0xFF, T.81 B.1.1.2) to the byte they lead to
+            while j < len(data) and data[j] == 0xFF:
+                j += 1
+            if j >= len(data):
+                i = -1
+                break
+            if data[j] == 0x00:  # stuffed (a decoder swallows fill bytes before the 0x00 too)
+                i = j + 1
                 continue
-            if nxt == 0xFF:  # a fill byte before a marker
-                i += 1
-                continue
+            # the padding goes before the fill bytes: after them it made 0xFF and its first byte
+            # a marker that is none, and a valid stream was refused
             pieces += [data[done:i], _PAD]
             done = i
-            if 0xD0 <= nxt <= 0xD7:
-                rst.append(nxt - 0xD0)
-                i += 2
+            if 0xD0 <= data[j] <= 0xD7:
+                rst.append(data[j] - 0xD0)
+                i = j + 1
                 continue
             break
         scans.append(rst)
-        if i < 0 or i + 1 >= len(data):
+        if i < 0:
             break
-        pos = i  # the marker after the scan: walked by lengths to the next SOS (or EOI)
+        pos = j - 1  # the marker after the scan: walked by lengths to the next SOS (or EOI)
         while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] not in (0xDA, 0xD9):
+            if data[pos + 1] == 0xFF:  # fill bytes before a segment's marker
+                pos += 1
+                continue
             pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
     pieces.append(data[done:])
     return b"".join(pieces), scans
@@ -307,6 +314,11 @@ def check_coded_data(path, buf, header: dict, data: np.ndarray, codec, where: st
                     f"{where}a {describe(header)} stream whose restart markers skip from RST{a} to RST{b} "
                     f"(marker {k + 1} of its scan): an interval lost, corrupt",
                 )
+    if "arithmetic" in header["process"]:
+        # not for arithmetic coding: its decoder reads zero bits past a marker, and its encoder
+        # drops the trailing zero bytes of its last symbols for it (T.81 D.1.8, F.2.2.5): an
+        # undamaged stream's last symbols are decoded from the padding, and it was refused
+        return
     try:
         again = codec(padded)
     except Exception:  # its own decoder's error: the padding was read
@@ -382,6 +394,16 @@ def warn_lossy(path, what: str) -> None:
     warnings.warn(said, stacklevel=5)
 
 
+def check_bytes(header: dict, stored: int) -> int:
+    """What :func:`check_coded_data` allocates beside the decode (``stored``: the stream's bytes):
+    its second image, held with the first to compare them, and the padded stream (its pieces, then
+    joined: twice the stream's bytes)."""
+    if header["codec"] != "jpeg" or "arithmetic" in header["process"]:
+        return 0
+    samples = header["width"] * header["height"] * header["components"]
+    return samples * out_dtype(header).itemsize + 2 * stored
+
+
 def check_file_header(path, header: dict, budget) -> None:
     """Refuse, before decoding, a file declaring more than the budget, a colour space of neither
     one nor three components, or samples over 16 bits."""
@@ -391,7 +413,10 @@ def check_file_header(path, header: dict, budget) -> None:
             path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
         )
     what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
-    check_budget(path, decoded, what, budget)
+    extra = check_bytes(header, os.path.getsize(path))
+    check_budget(
+        path, decoded + extra, what + (", decoded twice (the second checks its coded data)" if extra else ""), budget
+    )
     # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
     codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
     check_proportion(path, what, decoded, decoded, os.path.getsize(path), codec, budget)
