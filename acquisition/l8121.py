@@ -873,7 +873,8 @@ def _fallen_back(
     drop_fraction: float,
 ) -> str | None:
     """What shows a beam that fell back while it ramped (``highest``: the readings' highest so far
-    in the ramp; ``low``: the lower of the setting and the one it ramps from), or None.
+    in the ramp; ``low``: the lower of the setting and the one it ramps from; ``tolerance``: the
+    one at the higher of the two, where a reading jitters most), or None.
 
     L8121.md: the measured values "ramp towards the set values" after XON or a change, so a ramp
     stays between the two settings. A reading may lie up to a tolerance either side of the tube's
@@ -3382,6 +3383,12 @@ class L8121:
         # after a change while on: the lowest readings so far, and the highest since each had
         # climbed more than two tolerances above its lowest (-inf: not yet; see below)
         lowest, climbed = (math.inf, math.inf), (-math.inf, -math.inf)
+        # a reading's jitter, for those two: the tolerance at the higher of the old and the new
+        # setting (_beam_span), where the beam starts or ends. The new one alone, lower (250 ->
+        # 8 µA: 2 µA, not 5), called a stable meter's two readings at the old setting a climb,
+        # and the fall of a unit that ramps again from zero a dropped beam (review s55rvacq)
+        high = self._beam_span((kv, ua))[1]
+        jitter = (max(tol_kv, c.tolerance_kv(high[0])), max(tol_ua, c.tolerance_ua(high[1])))
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3410,13 +3417,13 @@ class L8121:
             lowest = (min(lowest[0], m_kv), min(lowest[1], m_ua))
             climbed = tuple(
                 max(top, value) if top > -math.inf or value > low + 2 * tol else top
-                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, (tol_kv, tol_ua))
+                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, jitter)
             )
             fell = _fallen_back(
                 m_kv,
                 m_ua,
                 highest if after_xon else climbed,
-                (tol_kv, tol_ua),
+                jitter,
                 self._beam_span((kv, ua))[0],
                 c.beam_drop_fraction,
             )
