@@ -23,6 +23,7 @@ import time
 
 import pytest
 
+from acquisition.cli import _interrupted_connect
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.l8121 import L8121, SourceConfig, SourceState
 
@@ -579,3 +580,28 @@ def test_an_interrupt_before_connect_reads_the_state_warns_when_the_switch_off_i
     assert "XOF" in model.commands, model.commands
     assert getattr(info.value, "tube_state", None) is None, vars(info.value)
     assert getattr(info.value, "off_failed", None) is not None, vars(info.value)
+
+
+def test_a_second_interrupt_during_the_connects_switch_off_closes_the_link_and_says_so(dialect):
+    """The stop above (dialect given, a unit left on, ``STS`` pending), then a second one while
+    connect's own ``XOF`` waits for its reply (a script's user pressing Ctrl-C again; the command
+    line's guard defers it, Python's default handler does not). The second stop goes on -- but
+    not with the link left open (``connect`` says every interrupt leaves it closed, and no caller
+    holds a driver to close after ``L8121(url)``) nor as a bare interrupt that reads as if nothing
+    had been sent: it carries ``off_failed``, the switch-off not confirmed."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, connect=False, **FAST)
+        model.slow(DELAY_S)  # every reply: both stops land while one is pending
+        with interrupt_when_received(model, "STS", 0), interrupt_when_received(model, "XOF", 0):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        opened = src.is_connected
+        if opened:
+            src.detach()
+    assert "XOF" in model.commands, model.commands
+    assert not opened
+    assert getattr(info.value, "off_failed", None) is not None, vars(info.value)
+    # the command line's last line (its guard defers the second stop, but a script reads the same fields)
+    assert _interrupted_connect(info.value).startswith("X-rays may be on; switching them off failed"), vars(info.value)
