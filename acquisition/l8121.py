@@ -1834,20 +1834,40 @@ class L8121:
                 self.baudrate,
             )
         except BaseException as exc:
-            if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
-                # (as the probe's: whether the controller has received anything from this connect)
-                exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
-            seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
+            self._after_failed_connect(exc)
+            raise
+        return self
+
+    def _after_failed_connect(self, exc: BaseException) -> None:
+        """What a connect that raised ``exc`` after the port opened does before ``exc`` goes on
+        (:meth:`connect`): the switch-off its cause calls for, then the link closed -- also when a
+        second stop cuts that switch-off short (a script's second Ctrl-C; the command line's guard
+        defers it): that stop goes on instead, carrying ``off_failed`` (the switch-off not
+        confirmed; before, it left the link open and read as if nothing had been sent)."""
+        if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
+            # (as the probe's: whether the controller has received anything from this connect)
+            exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
+        seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
+        try:
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
             elif isinstance(exc, KeyboardInterrupt) and self.control and not self.tube_confirmed_off:
                 self._off_for_unread_interrupt(exc)
             elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
+        except KeyboardInterrupt as again:
+            again.probe_sent, again.state_unread = True, getattr(exc, "state_unread", False)
+            if self.off_failed is None:
+                self.off_failed = DeviceError(
+                    f"{shown_name(self.port)}: could not confirm X-rays off: stopped again while switching them "
+                    "off; switch the source off at the controller"
+                )
+            again.off_failed = self.off_failed
+            self._log_off_failure(self.off_failed)
+            raise
+        finally:
             self._transport.close()
             self._transport = None
-            raise
-        return self
 
     def take_over(self, prober: L8121) -> None:
         """What ``prober``'s probe learnt of this controller -- its result, that it opened the port,
