@@ -605,3 +605,29 @@ def test_a_second_interrupt_during_the_connects_switch_off_closes_the_link_and_s
     assert getattr(info.value, "off_failed", None) is not None, vars(info.value)
     # the command line's last line (its guard defers the second stop, but a script reads the same fields)
     assert _interrupted_connect(info.value).startswith("X-rays may be on; switching them off failed"), vars(info.value)
+
+
+def test_a_stopped_connect_confirmed_off_only_by_the_unit_now_at_a_reopened_port_ends_on_the_warning(dialect, capsys):
+    """``source off`` (dialect given) at a unit left on: the link is lost during the identity
+    query and reopened (a USB adapter's glitch; :meth:`L8121Model.hold_once` and a read error),
+    then a SIGINT while ``STS`` is pending. The connect's own ``XOF`` is confirmed -- by the unit
+    now at the port, which the L8121 knows only by its model (the driver says so, CRITICAL): not
+    :attr:`L8121.tube_confirmed_off`, so README's exit rule ends the command on the X-rays
+    warning, exit 3. It ended on "X-rays off (confirmed by STS: STANDBY)", exit 130."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    ident = "TYP" if dialect == "A" else "SRL"
+    with PtyServer(model) as server:
+        model.hold_once(ident)  # its reply comes on the reopened port, late
+        model.inject_after(ident, server.read_error)
+        model.delay_once(DELAY_S, "STS")
+        capsys.readouterr()
+        with interrupt_when_received(model, "STS", len(model.commands)):  # (the guard's handler raises)
+            code = main(["acquire", "source", "off", "--port", server.url, "--dialect", dialect])
+        sent = model.commands
+    err = capsys.readouterr().err.strip().splitlines()
+    assert sent.count(ident) >= 2 and "XOF" in sent and not model.xray_on, sent  # reopened, then switched off
+    assert code == 3 and err[-1] == TUBE_WARNING, (code, err)
