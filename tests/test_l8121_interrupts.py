@@ -631,3 +631,4 @@ def test_a_stopped_connect_confirmed_off_only_by_the_unit_now_at_a_reopened_port
     err = capsys.readouterr().err.strip().splitlines()
     assert sent.count(ident) >= 2 and "XOF" in sent and not model.xray_on, sent  # reopened, then switched off
     assert code == 3 and err[-1] == TUBE_WARNING, (code, err)
+    assert err[-2].startswith("stopped by SIGINT") and "by the unit now at the reopened port" in err[-2], err
