@@ -632,3 +632,22 @@ def test_a_stopped_connect_confirmed_off_only_by_the_unit_now_at_a_reopened_port
     assert sent.count(ident) >= 2 and "XOF" in sent and not model.xray_on, sent  # reopened, then switched off
     assert code == 3 and err[-1] == TUBE_WARNING, (code, err)
     assert err[-2].startswith("stopped by SIGINT") and "by the unit now at the reopened port" in err[-2], err
+
+
+def test_a_first_stop_during_a_refused_connects_switch_off_leaves_its_caller_the_retry():
+    """A connect refused (``TYP`` names another model) sends ``XOF`` all the same; a stop while that
+    ``XOF`` waits for its reply is the first stop, not a second one: it goes on with the link
+    closed, and neither it nor the driver claims a failed switch-off ("stopped again"), which made
+    the command line's switch-off (:func:`acquisition.guardian.off_anyway`) skip its own try."""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="A", connect=False, model="L9181", **FAST)
+        model.delay_once(DELAY_S, "XOF")
+        with interrupt_when_received(model, "XOF", len(model.commands)):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        opened = src.is_connected
+    assert "XOF" in model.commands and not opened, model.commands
+    assert getattr(info.value, "probe_sent", False), vars(info.value)
+    assert getattr(info.value, "off_failed", None) is None and src.off_failed is None, vars(info.value)
