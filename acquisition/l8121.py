@@ -1856,14 +1856,17 @@ class L8121:
             elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
         except KeyboardInterrupt as again:
-            again.probe_sent, again.state_unread = True, getattr(exc, "state_unread", False)
-            if self.off_failed is None:
-                self.off_failed = DeviceError(
-                    f"{shown_name(self.port)}: could not confirm X-rays off: stopped again while switching them "
-                    "off; switch the source off at the controller"
-                )
-            again.off_failed = self.off_failed
-            self._log_off_failure(self.off_failed)
+            again.probe_sent = True  # (the XOF may have gone)
+            if isinstance(exc, KeyboardInterrupt):  # the first stop's switch-off cut short by a second
+                again.state_unread = getattr(exc, "state_unread", False)
+                if self.off_failed is None:
+                    self.off_failed = DeviceError(
+                        f"{shown_name(self.port)}: could not confirm X-rays off: stopped again while switching "
+                        "them off; switch the source off at the controller"
+                    )
+                again.off_failed = self.off_failed
+                self._log_off_failure(self.off_failed)
+            # else the first stop, in a refused connect's XOF: its caller switches off (off_anyway)
             raise
         finally:
             self._transport.close()
