@@ -967,6 +967,10 @@ def _source_command(args, guard) -> int:
                 tried = args.action != "status" and _off_anyway(src, exc, blind=args.action == "off")
                 confirmed = tried or src.tube_confirmed_off
                 exc.may_be_on = not confirmed and (src.port_opened or args.action == "off")
+            elif getattr(exc, "tube_state", None) is not None and not getattr(exc, "guardian_off", False):
+                # connect's own XOF, confirmed -- by the unit now at a reopened port (unit_unverified)?
+                exc.may_be_on = not src.tube_confirmed_off
+                exc.tube += " by the unit now at the reopened port, known only by its model" if exc.may_be_on else ""
             raise
         except DeviceError as exc:
             if args.action == "off":

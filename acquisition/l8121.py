@@ -873,7 +873,8 @@ def _fallen_back(
     drop_fraction: float,
 ) -> str | None:
     """What shows a beam that fell back while it ramped (``highest``: the readings' highest so far
-    in the ramp; ``low``: the lower of the setting and the one it ramps from), or None.
+    in the ramp; ``low``: the lower of the setting and the one it ramps from; ``tolerance``: the
+    one at the higher of the two, where a reading jitters most), or None.
 
     L8121.md: the measured values "ramp towards the set values" after XON or a change, so a ramp
     stays between the two settings. A reading may lie up to a tolerance either side of the tube's
@@ -1833,20 +1834,43 @@ class L8121:
                 self.baudrate,
             )
         except BaseException as exc:
-            if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
-                # (as the probe's: whether the controller has received anything from this connect)
-                exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
-            seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
+            self._after_failed_connect(exc)
+            raise
+        return self
+
+    def _after_failed_connect(self, exc: BaseException) -> None:
+        """What a connect that raised ``exc`` after the port opened does before ``exc`` goes on
+        (:meth:`connect`): the switch-off its cause calls for, then the link closed -- also when a
+        second stop cuts that switch-off short (a script's second Ctrl-C; the command line's guard
+        defers it): that stop goes on instead, carrying ``off_failed`` (the switch-off not
+        confirmed; before, it left the link open and read as if nothing had been sent)."""
+        if isinstance(exc, KeyboardInterrupt) and not hasattr(exc, "probe_sent"):
+            # (as the probe's: whether the controller has received anything from this connect)
+            exc.probe_sent = self.probe_result is not None or getattr(self._transport, "commands_written", 1) > 0
+        seen_on = (self.probe_result is not None and self.probe_result.emitting) or self._may_be_on
+        try:
             if isinstance(exc, KeyboardInterrupt) and seen_on:
                 self._off_for_interrupt(exc)  # X-rays were read on: an interrupt still switches off
             elif isinstance(exc, KeyboardInterrupt) and self.control and not self.tube_confirmed_off:
                 self._off_for_unread_interrupt(exc)
             elif isinstance(exc, DeviceError) and self.control and not getattr(exc, "foreign", False):
                 self._off_after_refused_connect()
+        except KeyboardInterrupt as again:
+            again.probe_sent = True  # (the XOF may have gone)
+            if isinstance(exc, KeyboardInterrupt):  # the first stop's switch-off cut short by a second
+                again.state_unread = getattr(exc, "state_unread", False)
+                if self.off_failed is None:
+                    self.off_failed = DeviceError(
+                        f"{shown_name(self.port)}: could not confirm X-rays off: stopped again while switching "
+                        "them off; switch the source off at the controller"
+                    )
+                again.off_failed = self.off_failed
+                self._log_off_failure(self.off_failed)
+            # else the first stop, in a refused connect's XOF: its caller switches off (off_anyway)
+            raise
+        finally:
             self._transport.close()
             self._transport = None
-            raise
-        return self
 
     def take_over(self, prober: L8121) -> None:
         """What ``prober``'s probe learnt of this controller -- its result, that it opened the port,
@@ -3382,6 +3406,12 @@ class L8121:
         # after a change while on: the lowest readings so far, and the highest since each had
         # climbed more than two tolerances above its lowest (-inf: not yet; see below)
         lowest, climbed = (math.inf, math.inf), (-math.inf, -math.inf)
+        # a reading's jitter, for those two: the tolerance at the higher of the old and the new
+        # setting (_beam_span), where the beam starts or ends. The new one alone, lower (250 ->
+        # 8 µA: 2 µA, not 5), called a stable meter's two readings at the old setting a climb,
+        # and the fall of a unit that ramps again from zero a dropped beam (review s55rvacq)
+        high = self._beam_span((kv, ua))[1]
+        jitter = (max(tol_kv, c.tolerance_kv(high[0])), max(tol_ua, c.tolerance_ua(high[1])))
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3410,13 +3440,13 @@ class L8121:
             lowest = (min(lowest[0], m_kv), min(lowest[1], m_ua))
             climbed = tuple(
                 max(top, value) if top > -math.inf or value > low + 2 * tol else top
-                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, (tol_kv, tol_ua))
+                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, jitter)
             )
             fell = _fallen_back(
                 m_kv,
                 m_ua,
                 highest if after_xon else climbed,
-                (tol_kv, tol_ua),
+                jitter,
                 self._beam_span((kv, ua))[0],
                 c.beam_drop_fraction,
             )

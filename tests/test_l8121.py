@@ -5986,6 +5986,57 @@ class _ReRampingUnit(L8121Model):
         return self._set_kv * g, self._set_ua * g
 
 
+class _ReRampingJitteryUnit(_ReRampingUnit):
+    """A :class:`_ReRampingUnit` whose current meter reads ``jitter`` (a fraction) of the tube's
+    current either side of it, by turns (reading k of the model's clock, k = t / ``step``): a
+    meter whose noise grows with the value it reads, within the tolerance at every setting. A
+    fake of the meter's noise: the emulator has none."""
+
+    def __init__(self, *, jitter: float, step: float, **kw):
+        super().__init__(**kw)
+        self._jitter, self._step = jitter, step
+
+    def _retarget(self, t):
+        if self._state == SourceState.XRAY_ON:  # from the tube's value, not the meter's
+            self._change = (t, _ReRampingUnit._measured(self, t))
+
+    def _measured(self, t):
+        kv, ua = super()._measured(t)
+        if self._state != SourceState.XRAY_ON:
+            return kv, ua
+        return kv, ua * (1 + (self._jitter if round(t / self._step) % 2 else -self._jitter))
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_change_down_on_a_jittery_meter_that_ramps_again_from_zero_is_not_called_dropped(dialect):
+    """250 -> 8 µA while on, on a unit that ramps again from zero after a change (the second
+    reading of L8121.md) and whose meter reads 1.9 % either side of the tube's current: within
+    the tolerance at 250 µA (5 µA) as at 8 µA (2 µA), so the beam reads stable at both. Two
+    readings near 250 µA may then differ by up to twice the 250 µA tolerance with nothing changed
+    in the beam; judged by the new setting's tolerance (2 x 2 µA) such a pair "climbed", and the
+    fall to nothing that follows, the ramp's start, was switched off as a dropped beam. The
+    model's clock moves a hundredth of the fall after each reading of the current: no timing."""
+    now = [0.0]
+    step, jitter = 0.01, 0.019
+    model = _ReRampingJitteryUnit(
+        jitter=jitter, step=step, fall_s=1.0, dialect=dialect, warmed_up=True, ramp_s=0.2, clock=lambda: now[0]
+    )
+
+    with (
+        PtyServer(model) as server,
+        driver(server, dialect, poll_s=0.005, min_interval_s=0.0, stable_timeout_s=30.0) as src,
+    ):
+        assert jitter * 250 < src.config.tolerance_ua(250) and jitter * 8 < src.config.tolerance_ua(8)
+        _clock_per_current_reading(model, dialect, now, step)
+        src.on(60, 250)
+        try:
+            assert src.set_values(60, 8) == (60, 8)
+            assert abs(src.measured()[1] - 8) <= src.config.tolerance_ua(8)
+            assert model.xray_on and "XOF" not in commands_after(model, "XON")
+        finally:
+            src.off()
+
+
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_a_beam_that_falls_back_after_climbing_to_a_new_setting_is_switched_off_at_that_reading(dialect):
     """A setting raised while the beam is on (set_values, 100 -> 250 µA): the current ramps up

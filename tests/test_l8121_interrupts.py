@@ -23,6 +23,7 @@ import time
 
 import pytest
 
+from acquisition.cli import _interrupted_connect
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.l8121 import L8121, SourceConfig, SourceState
 
@@ -579,3 +580,74 @@ def test_an_interrupt_before_connect_reads_the_state_warns_when_the_switch_off_i
     assert "XOF" in model.commands, model.commands
     assert getattr(info.value, "tube_state", None) is None, vars(info.value)
     assert getattr(info.value, "off_failed", None) is not None, vars(info.value)
+
+
+def test_a_second_interrupt_during_the_connects_switch_off_closes_the_link_and_says_so(dialect):
+    """The stop above (dialect given, a unit left on, ``STS`` pending), then a second one while
+    connect's own ``XOF`` waits for its reply (a script's user pressing Ctrl-C again; the command
+    line's guard defers it, Python's default handler does not). The second stop goes on -- but
+    not with the link left open (``connect`` says every interrupt leaves it closed, and no caller
+    holds a driver to close after ``L8121(url)``) nor as a bare interrupt that reads as if nothing
+    had been sent: it carries ``off_failed``, the switch-off not confirmed."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, connect=False, **FAST)
+        model.slow(DELAY_S)  # every reply: both stops land while one is pending
+        with interrupt_when_received(model, "STS", 0), interrupt_when_received(model, "XOF", 0):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        opened = src.is_connected
+        if opened:
+            src.detach()
+    assert "XOF" in model.commands, model.commands
+    assert not opened
+    assert getattr(info.value, "off_failed", None) is not None, vars(info.value)
+    # the command line's last line (its guard defers the second stop, but a script reads the same fields)
+    assert _interrupted_connect(info.value).startswith("X-rays may be on; switching them off failed"), vars(info.value)
+
+
+def test_a_stopped_connect_confirmed_off_only_by_the_unit_now_at_a_reopened_port_ends_on_the_warning(dialect, capsys):
+    """``source off`` (dialect given) at a unit left on: the link is lost during the identity
+    query and reopened (a USB adapter's glitch; :meth:`L8121Model.hold_once` and a read error),
+    then a SIGINT while ``STS`` is pending. The connect's own ``XOF`` is confirmed -- by the unit
+    now at the port, which the L8121 knows only by its model (the driver says so, CRITICAL): not
+    :attr:`L8121.tube_confirmed_off`, so README's exit rule ends the command on the X-rays
+    warning, exit 3. It ended on "X-rays off (confirmed by STS: STANDBY)", exit 130."""
+    from acquisition.guardian import TUBE_WARNING
+    from radiokit.cli import main
+
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    ident = "TYP" if dialect == "A" else "SRL"
+    with PtyServer(model) as server:
+        model.hold_once(ident)  # its reply comes on the reopened port, late
+        model.inject_after(ident, server.read_error)
+        model.delay_once(DELAY_S, "STS")
+        capsys.readouterr()
+        with interrupt_when_received(model, "STS", len(model.commands)):  # (the guard's handler raises)
+            code = main(["acquire", "source", "off", "--port", server.url, "--dialect", dialect])
+        sent = model.commands
+    err = capsys.readouterr().err.strip().splitlines()
+    assert sent.count(ident) >= 2 and "XOF" in sent and not model.xray_on, sent  # reopened, then switched off
+    assert code == 3 and err[-1] == TUBE_WARNING, (code, err)
+    assert err[-2].startswith("stopped by SIGINT") and "by the unit now at the reopened port" in err[-2], err
+
+
+def test_a_first_stop_during_a_refused_connects_switch_off_leaves_its_caller_the_retry():
+    """A connect refused (``TYP`` names another model) sends ``XOF`` all the same; a stop while that
+    ``XOF`` waits for its reply is the first stop, not a second one: it goes on with the link
+    closed, and neither it nor the driver claims a failed switch-off ("stopped again"), which made
+    the command line's switch-off (:func:`acquisition.guardian.off_anyway`) skip its own try."""
+    model = L8121Model(dialect="A", warmed_up=True, ramp_s=0.0)
+    model.left_on(60, 250)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="A", connect=False, model="L9181", **FAST)
+        model.delay_once(DELAY_S, "XOF")
+        with interrupt_when_received(model, "XOF", len(model.commands)):
+            with pytest.raises(KeyboardInterrupt) as info:
+                src.connect()
+        opened = src.is_connected
+    assert "XOF" in model.commands and not opened, model.commands
+    assert getattr(info.value, "probe_sent", False), vars(info.value)
+    assert getattr(info.value, "off_failed", None) is None and src.off_failed is None, vars(info.value)
