@@ -86,7 +86,8 @@ def test_an_isotropic_texture_keeps_its_translation_bound():
     assert 0.9 < la[C0, C0] / lt[C0, C0] <= 1.0 + 1e-6
 
 
-def test_the_map_with_the_affine_bound_leaves_a_bodys_rim_unobserved_and_a_texture_observed():
+def test_the_map_with_the_affine_bound_leaves_a_bodys_rim_unobserved_and_a_texture_observed(monkeypatch):
+    monkeypatch.setattr(C, "AFFINE_PRIOR", None)  # affine_prior=None below: the map without the bound
     rng = np.random.default_rng(1)
     yy, xx = np.mgrid[:320, :320].astype(np.float64)
     body = 1 / (1 + np.exp((np.hypot(yy - 160, xx - 160) - 120) / 1.5))
@@ -100,7 +101,7 @@ def test_the_map_with_the_affine_bound_leaves_a_bodys_rim_unobserved_and_a_textu
             assert (share > 0.9) if observed else (share < 0.1), (affine, share)
 
 
-def test_the_affine_map_carries_the_translation_map_beside_it_for_the_other_checks():
+def test_the_affine_map_carries_the_translation_map_beside_it_for_the_other_checks(monkeypatch):
     # AFFINE_INTERIOR_ONLY reads the interior's share from the affine map and every other check
     # from the translation map: that map must be the library's map without the affine bound
     rng = np.random.default_rng(2)
@@ -108,8 +109,37 @@ def test_the_affine_map_carries_the_translation_map_beside_it_for_the_other_chec
     f = (1 / (1 + np.exp((np.hypot(yy - 100, xx - 100) - 70) / 1.5)) + 0.01 * rng.standard_normal(yy.shape)).astype(
         np.float32
     )
+    monkeypatch.setattr(C, "AFFINE_PRIOR", None)  # the library's map without the affine bound
     plain = C.observability(f, S)
     affine = C.observability(f, S, affine_prior=0.01)
     assert plain.translation is None
     np.testing.assert_array_equal(affine.translation, plain.confidence)
     assert np.all(affine.confidence <= plain.confidence + 1e-6)
+
+
+def test_under_the_interior_only_rule_register_returns_the_translation_map(monkeypatch):
+    # A noisy textureless disc (radius 75 in 192 px) moved 1 px: its interior is observed only
+    # through the rim's curvature, which the affine bound takes away (a slide along the arc is a
+    # local rotation the rim cannot show). Under AFFINE_INTERIOR_ONLY the interior's share alone
+    # reads the affine map; the map register() returns (saved, drawn, read for the ROIs' verdict)
+    # is the translation map, as every other check reads, so it equals the map with the bound off.
+    from radiokit.register import register
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:192, :192].astype(np.float64)
+    body = 1 / (1 + np.exp((np.hypot(yy - 96, xx - 96) - 75) / 1.5))
+    f = (body + 0.01 * rng.standard_normal(body.shape)).astype(np.float32)
+    m = (np.roll(body, 1, axis=1) + 0.01 * rng.standard_normal(body.shape)).astype(np.float32)
+    regs = {}
+    for name, prior, interior_only in (("off", None, False), ("interior", 0.01, True), ("whole", 0.01, False)):
+        monkeypatch.setattr(C, "AFFINE_PRIOR", prior)
+        monkeypatch.setattr(C, "AFFINE_INTERIOR_ONLY", interior_only)
+        regs[name] = register(f, m, "rc", preset="fast")
+    off, interior, whole = regs["off"], regs["interior"], regs["whole"]
+    np.testing.assert_array_equal(interior.confidence, off.confidence)
+    assert interior.quality.observed_fraction == off.quality.observed_fraction
+    # the interior's share: the rim's credit gone under the affine bound (half a window's reach
+    # of the rim observed at most), and the whole-map rule returns the smaller map
+    assert off.quality.interior_observed > 0.3
+    assert interior.quality.interior_observed < 0.5 * off.quality.interior_observed
+    assert np.mean(whole.confidence >= 0.5) < np.mean(off.confidence >= 0.5)

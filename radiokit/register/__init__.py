@@ -94,7 +94,12 @@ class Quality:
     (``Registration.confidence`` >= 0.5, see ``radiokit.register._confidence``), less the pixels
     the field carries out of the frame (the checks leave them out, :func:`_judged`);
     ``interior_observed``: the same share of the object's interior (two map windows, about 1/12
-    of the frame, inside its edge; the whole object when it is narrower);
+    of the frame, inside its edge; the whole object when it is narrower), read from a stricter map
+    than ``confidence``: each window's bound under a local affine motion (``_confidence.AFFINE_PRIOR``,
+    ``AFFINE_INTERIOR_ONLY``), where a rim's curvature no longer credits the motion along it (a field
+    free at the window's scale turns that slide into a rotation the rim cannot show; session 55);
+    every other share and ``confidence`` keep the translation bound, since the whole outline does
+    pin a body-scale motion that no single window does;
     ``misaligned_fraction``: the share of its observed part where the high-passed residual
     exceeds the noise's expected share by more than a tenth (structure left misaligned; a lone
     row or column of one image, a detector's dead line, left out; see
@@ -455,8 +460,9 @@ def register(
     could be sliding along a rim (``Quality.rim_share``, ``Quality.inconsistency``). ``options`` go
     to the method (see ``radiokit.register.METHODS[name].__doc__``).
 
-    The result carries ``confidence`` (where the motion is observable from these images, see
-    ``radiokit.register._confidence``) and ``quality`` (``ok`` and a ``reason``, decided without
+    The result carries ``confidence`` (where the motion is observable from these images, a
+    translation of each window's bounded, see ``radiokit.register._confidence``; the flag's test of
+    the interior's observed share reads the stricter local-affine map, which is not returned) and ``quality`` (``ok`` and a ``reason``, decided without
     the truth); ``roi_observed(reg.confidence, roi)`` says how much of a ROI was observed.
 
     Bool images register as 0/1 (as ``radiokit register`` reads a bool TIFF).
@@ -839,8 +845,16 @@ class _PairChecks:
         # the bound in full-resolution pixels, as the field's error is judged: binning by k divides
         # a bound in binned pixels by k (a 2240 frame's textureless interior read 65 % observed in
         # binned pixels, 27 % in its own)
-        self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k, moving=self.m)
-        self.obs = (self.ob.confidence >= 0.5) & self.ob.object
+        self.ob = C.observability(self.f, _WINDOW, self.mask, bound_scale=k, moving=self.m, affine_prior=C.AFFINE_PRIOR)
+        # ``map``: what the result carries (Registration.confidence, the ROIs' verdict) and every check
+        # but the interior's observed share reads; under AFFINE_INTERIOR_ONLY the translation map,
+        # because the whole outline pins a body-scale motion no single window does (session 55,
+        # benchmarks/README.md, "Local affine observability"), and ``obs_interior`` the affine one
+        self.map = self.ob.confidence
+        if self.ob.translation is not None and C.AFFINE_INTERIOR_ONLY:
+            self.map = self.ob.translation
+        self.obs = (self.map >= 0.5) & self.ob.object
+        self.obs_interior = (self.ob.confidence >= 0.5) & self.ob.object
 
     @functools.cached_property
     def unit(self) -> np.float32:
@@ -1015,19 +1029,16 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     the pair by (``_rescale``)."""
     q = reg.quality
     ob, k = p.ob, p.k
-    reg.confidence = _full_confidence(ob.confidence, out, reg.displacement.shape[1:])
+    reg.confidence = _full_confidence(p.map, out, reg.displacement.shape[1:])
     obs, inner = p.obs, p.inner
     n_obj = int(ob.object.sum())
     q.noise = ob.sigma / scale  # the image's units (register() registered the pair times ``scale``)
     # what the field carries out of the frame is not observed: the moving image holds nothing there
     judged = obs if out is None else obs & ~out
     q.observed_fraction = float(judged.sum() / n_obj) if n_obj else 0.0
-    q.interior_observed = float(judged[inner].mean()) if inner.any() else q.observed_fraction
-    from radiokit.register import _confidence as C
-
-    if ob.translation is not None and C.AFFINE_INTERIOR_ONLY:  # measured, off (benchmarks/README.md)
-        obs_t = (ob.translation >= 0.5) & ob.object
-        judged = obs_t if out is None else obs_t & ~out
+    # the interior's share alone reads the affine map (p.obs_interior; the same as obs without it)
+    seen = p.obs_interior if out is None else p.obs_interior & ~out
+    q.interior_observed = float(seen[inner].mean()) if inner.any() else (float(seen.sum() / n_obj) if n_obj else 0.0)
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, judged)
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)

@@ -415,11 +415,14 @@ def one_directional(f, spacing, highpass=0.25) -> np.ndarray:
 
 #: ``observability``'s local affine bound (session 55; measured, see benchmarks/README.md, "Local
 #: affine observability"): None (off), or the prior standard deviation ``s`` of each element of a
-#: window's displacement gradient (px per px; see :func:`affine_lmins`)
-AFFINE_PRIOR = None
-#: with AFFINE_PRIOR: the affine map for the interior's observed share alone, the translation map
-#: for every other check (misaligned share, residual motion, the body-scale waiver): measured
-AFFINE_INTERIOR_ONLY = False
+#: window's displacement gradient (px per px; see :func:`affine_lmins`). The default since session
+#: 55's adoption: it flags the along-rim slides a rim's curvature was credited with
+AFFINE_PRIOR = 0.01
+#: with AFFINE_PRIOR: the affine map for the interior's observed share alone; the translation map
+#: (``Observability.translation``) is what register() returns and every other check reads
+#: (misaligned share, residual motion, the body-scale waiver, the ROIs' verdict): the whole
+#: outline pins a body-scale motion no single window does
+AFFINE_INTERIOR_ONLY = True
 
 
 def _moment_kernel(s, a) -> np.ndarray:
@@ -570,9 +573,11 @@ def observability(
     detector, and it would call a band of two windows' width observed (session 41's review: 84 %
     of a 120-row band across a moving body, whose field there was worse than none). ``pinned``:
     also ``Observability.pinned`` (see the module docstring, "Where the field is pinned").
-    ``affine_prior`` (None: :data:`AFFINE_PRIOR`, itself None: off): also bound each window's
-    centre under a local affine motion (:func:`_affine_info`), the map's information the smaller
-    of the two."""
+    ``affine_prior`` (None: :data:`AFFINE_PRIOR` when not :data:`AFFINE_INTERIOR_ONLY`, else off):
+    also bound each window's centre under a local affine motion (:func:`_affine_info`), the map's
+    information the smaller of the two, the translation's map in ``translation``. Under the
+    interior-only rule the map is the translation's unless asked (register()'s checks ask, for the
+    interior's share alone): it is the map register() returns."""
     f = np.asarray(fixed, np.float32)
     spacing = max(2.0, float(spacing))
     sig_map = noise_map(f, spacing)
@@ -583,7 +588,9 @@ def observability(
     lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,))
     lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
-    prior = AFFINE_PRIOR if affine_prior is None else affine_prior
+    prior = affine_prior
+    if prior is None and not AFFINE_INTERIOR_ONLY:
+        prior = AFFINE_PRIOR
     translation = None
     if prior is not None:
         translation = _confidence(info, bound_scale, flat_common(f, moving) if moving is not None else None)[0]
