@@ -48,9 +48,8 @@ def test_a_late_reconnect_check_reply_is_not_read_as_the_next_commands():
             model.inject_after("SIN", server.read_error)
             with pytest.raises(DeviceError, match="did not answer SRL"):
                 src.interlock_closed()
+            # STS and then DAG (B's status reads both): each its own reply, none one behind
             assert src.status() == SourceState.STANDBY
-            assert src.interlock_closed()
-            assert src.operate_switch() == "REMOTE"
         finally:
             src.close()
 
