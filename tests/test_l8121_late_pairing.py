@@ -98,3 +98,23 @@ def test_a_stale_standby_never_confirms_a_switch_off():
         finally:
             model.slow(0)
             src.close()
+
+
+def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
+    """No held reply, only timing: one ``STS`` answered ``2 * TIMEOUT_S`` late (a controller busy
+    for a moment), past the driver's time-out and its wait for a late reply, so it comes while the
+    resent ``STS`` waits. The emulator answers in order, as L8121.md's controller does ("one
+    command, one reply"): the case is not an artefact of ``hold_once``."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.delay_once(2 * TIMEOUT_S, "STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            assert src.status() == SourceState.XRAY_ON
+        finally:
+            model.slow(0)
+            src.close()
