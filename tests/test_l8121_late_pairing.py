@@ -1,0 +1,120 @@
+"""A late reply to a command resent under the same word is not read as the resent command's own.
+
+Dialect B does not echo its queries (``L8121.md``): ``SRL`` answers ``REMOTE``, ``STS`` answers
+``STANDBY``. After a time-out the controller may still answer, in order, so the first line that
+fits a resent ``SRL`` or ``STS`` may be the late reply to the first one -- taken as the resent
+command's, its own reply then came during the next command: B's ``STS`` read ``'REMOTE'`` after a
+reconnect (review s55), and a resent ``STS`` read the ``STANDBY`` of a state since changed.
+
+Real pyserial on a pseudo-terminal with radiokit's emulator. ``hold_once`` holds one reply until
+the client's next line: a reply that comes after the client gave up on it, as a controller slower
+than the time-out answers; ``slow`` gives every reply the latency that lets the resent command's
+own reply come after the next command was written (the flush before a command clears only what
+has arrived by then).
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.errors import DeviceError
+from acquisition.l8121 import L8121, SourceState
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+# the reply time-out, and each reply's latency: shorter than it (a reply in time is read), longer
+# than the command spacing (the resent command's own reply is still on its way when the next
+# command goes out, past the flush before it)
+TIMEOUT_S = 0.25
+LATENCY_S = 0.1
+FAST = dict(poll_s=0.05, min_interval_s=0.02, timeout_s=TIMEOUT_S)
+
+
+def test_a_late_reconnect_check_reply_is_not_read_as_the_next_commands():
+    """The reviewer's case: a read error during ``SIN`` reopens the port; the reconnect check's
+    ``SRL`` is answered late (held); the next query reopens and asks ``SRL`` again. The first
+    ``REMOTE`` on the line is the first ``SRL``'s: read as the second's, the second's own then
+    came during ``STS`` ("unparseable reply ... 'REMOTE'"), and every later reply was one behind
+    (the second ``STS`` read the first's ``STANDBY``, ``DAG`` read ``STANDBY``)."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("SRL")  # the reconnect check's: connect's SRL is done
+            model.inject_after("SIN", server.read_error)
+            with pytest.raises(DeviceError, match="did not answer SRL"):
+                src.interlock_closed()
+            # STS and then DAG (B's status reads both): each its own reply, none one behind
+            assert src.status() == SourceState.STANDBY
+        finally:
+            src.close()
+
+
+def test_a_stale_standby_is_not_read_as_the_state_of_a_tube_switched_on_since():
+    """``STS`` times out with the tube off (its ``STANDBY`` held); the tube is then switched on
+    (other software, the front panel) and ``STS`` is asked again. The held ``STANDBY`` comes first:
+    read as the resent ``STS``'s, a tube emitting was reported off -- the false-safe reading a
+    switch-off's confirmation must never get."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            assert src.status() == SourceState.XRAY_ON
+        finally:
+            model.slow(0)
+            src.close()
+
+
+def test_a_stale_standby_never_confirms_a_switch_off():
+    """As above, but the next thing the driver does is switch off: ``XOF``, then ``STS`` until it
+    reads a state that cannot emit. The held ``STANDBY`` (from before the tube went on) comes at
+    ``XOF``, and must not be taken as the confirmation: ``off()`` returns only once the controller
+    itself says so, after the ``XOF`` -- every ``STS`` that confirmed was asked after it."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    model.ramp_down(0.15)  # the supply takes a while to fall: the first STS after XOF reads XON
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            n = len(model.log)
+            assert src.off() in (SourceState.STANDBY, SourceState.WARMUP_NEEDED)
+            after = model.log[n:]
+            first_xof = next(i for i, e in enumerate(after) if e.command == "XOF")
+            confirming = [e for e in after[first_xof:] if e.command == "STS" and e.reply == "STANDBY"]
+            assert confirming and not model.xray_on, [(e.command, e.reply) for e in after]
+        finally:
+            model.slow(0)
+            src.close()
+
+
+def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
+    """No held reply, only timing: one ``STS`` answered ``2 * TIMEOUT_S`` late (a controller busy
+    for a moment), past the driver's time-out and its wait for a late reply, so it comes while the
+    resent ``STS`` waits. The emulator answers in order, as L8121.md's controller does ("one
+    command, one reply"): the case is not an artefact of ``hold_once``."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.1)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.delay_once(2 * TIMEOUT_S, "STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            assert src.status() == SourceState.XRAY_ON
+        finally:
+            model.slow(0)
+            src.close()
