@@ -16,6 +16,9 @@ has arrived by then).
 from __future__ import annotations
 
 import os
+import signal
+import threading
+import time
 
 import pytest
 
@@ -118,3 +121,46 @@ def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
         finally:
             model.slow(0)
             src.close()
+
+
+def test_a_stop_while_a_reply_is_held_back_switches_off_promptly():
+    """One ``STS`` is never answered (the controller lost it); the next ``STS``'s own reply fits
+    both it and the one owed, so the transport holds it back for a second line. A stop (SIGINT,
+    raised as KeyboardInterrupt) landing in that wait must leave a switch-off as prompt as any
+    other: the reply was already read, and the wait for it to complete cost the rest of a reply
+    time-out, confirmation well past a quarter of one (review s55rvlate)."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    old = signal.signal(signal.SIGINT, _raise_interrupt)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.left_on()
+            model.silence(True, execute=True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            n, kill = len(model.log), {}
+
+            def stop_once_answered():
+                while not any(e.command == "STS" for e in model.log[n:]):
+                    time.sleep(0.002)
+                time.sleep(TIMEOUT_S / 5)  # its reply read, held back for a second line
+                kill["t"] = time.monotonic()
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_once_answered, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)  # (the stop comes here when nothing was held back)
+            watcher.join(timeout=2)
+            assert src.off().confirms_off and not model.xray_on
+            took = time.monotonic() - kill["t"]
+            assert took < TIMEOUT_S / 4, f"switch-off confirmed {took:.3f} s after the stop"
+        finally:
+            signal.signal(signal.SIGINT, old)
+            src.close()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
