@@ -164,3 +164,44 @@ def test_a_stop_while_a_reply_is_held_back_switches_off_promptly():
 
 def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
+
+
+def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_reply_to_the_grammar():
+    """As above, but the line held back is the late one (``hold_once``: the first ``STS``'s
+    ``STANDBY``, from before the tube was switched on) and the resent ``STS``'s own ``XON`` is
+    still on its way when the stop comes. The switch-off's ``XOF`` goes out at once; that ``XON``
+    then comes during its read and is discarded as the ``STS``'s (it is no echo of ``XOF``): the
+    switch-off is confirmed only by an ``STS`` asked after the ``XOF``, the tube off."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    old = signal.signal(signal.SIGINT, _raise_interrupt)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            n = len(model.log)
+
+            def stop_within_the_hold():
+                while not any(e.command == "STS" for e in model.log[n:]):
+                    time.sleep(0.002)
+                # the held STANDBY is sent as the STS arrives, its own reply LATENCY_S later
+                time.sleep(LATENCY_S / 3)
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_within_the_hold, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)
+            watcher.join(timeout=2)
+            assert src.off().confirms_off and not model.xray_on
+            after = [(e.command, e.reply) for e in model.log[n:]]
+            assert after[0] == ("STS", "XON") and after[1] == ("XOF", "XOF"), after
+            assert all(c == "STS" for c, _ in after[2:]) and after[-1][1] != "XON", after
+        finally:
+            model.slow(0)
+            signal.signal(signal.SIGINT, old)
+            src.close()
