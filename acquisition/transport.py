@@ -606,6 +606,8 @@ class SerialTransport:
         # deadline). The controller still answers it, and that late reply must not be read as the
         # next command's (the flush before a command only clears what has arrived by then)
         self._pending: tuple[str, float] | None = None
+        # the command whose reply _read_line holds back (_undecided): a line of it was read
+        self._held_for: str | None = None
         self._rx = bytearray()  # what the exchange in progress has read of its reply so far
         # The words of the commands written since the port's output last drained (a drain a stop
         # cut short, a write that timed out): close() keeps unsent bytes that hold the switch-off
@@ -1436,6 +1438,15 @@ class SerialTransport:
         if self._pending is None:
             return
         (command, deadline), self._pending = self._pending, None
+        if self._held_for == command:
+            # a line that fits it was read and held back when the signal came (_read_line): its
+            # own reply, or the late one owed before it, then its own still to come. Waited for,
+            # the switch-off waited the rest of a reply time-out for a line mostly already read
+            # (review s55rvlate); owed instead, a line still to come is told from XOF's echo by
+            # the grammar (_is_late), as after any time-out
+            self._held_for = None
+            self._owed.append((command, time.monotonic() + self.timeout_s))
+            return
         ser, buf = self._serial, self._rx
         while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
             if time.monotonic() >= deadline:
@@ -1514,7 +1525,7 @@ class SerialTransport:
         # a line that may be the late reply owed or this command's own (_undecided): another line
         # within this reply's time-out is this command's (the controller answers in order), and
         # the first was the late one; none, and the first is this command's
-        undecided = None
+        undecided = self._held_for = None
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
@@ -1546,8 +1557,10 @@ class SerialTransport:
                         # no longer owed either way (a signal may end this wait: nothing is left
                         # owed for a line already read)
                         undecided = (text, self._owed.pop(0)[0])
+                        self._held_for = command
                         buf = self._rx = rest  # (out already: one was owed)
                         continue
+                    self._held_for = None
                     if self._is_late(command, text):
                         buf = self._rx = rest  # (out already: one was owed)
                         continue
@@ -1567,6 +1580,7 @@ class SerialTransport:
                 continue
             if left <= 0 and undecided is not None:
                 self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
+                self._held_for = None
                 return undecided[0]
             if left <= 0:
                 got = f"; partial reply {_quoted(bytes(buf))}" if buf else ""

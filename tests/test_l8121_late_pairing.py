@@ -16,6 +16,9 @@ has arrived by then).
 from __future__ import annotations
 
 import os
+import signal
+import threading
+import time
 
 import pytest
 
@@ -117,4 +120,88 @@ def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
             assert src.status() == SourceState.XRAY_ON
         finally:
             model.slow(0)
+            src.close()
+
+
+def test_a_stop_while_a_reply_is_held_back_switches_off_promptly():
+    """One ``STS`` is never answered (the controller lost it); the next ``STS``'s own reply fits
+    both it and the one owed, so the transport holds it back for a second line. A stop (SIGINT,
+    raised as KeyboardInterrupt) landing in that wait must leave a switch-off as prompt as any
+    other: the reply was already read, and the wait for it to complete cost the rest of a reply
+    time-out, confirmation well past a quarter of one (review s55rvlate)."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    old = signal.signal(signal.SIGINT, _raise_interrupt)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.left_on()
+            model.silence(True, execute=True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            n, kill = len(model.log), {}
+
+            def stop_once_answered():
+                while not any(e.command == "STS" for e in model.log[n:]):
+                    time.sleep(0.002)
+                time.sleep(TIMEOUT_S / 5)  # its reply read, held back for a second line
+                kill["t"] = time.monotonic()
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_once_answered, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)  # (the stop comes here when nothing was held back)
+            watcher.join(timeout=2)
+            assert src.off().confirms_off and not model.xray_on
+            took = time.monotonic() - kill["t"]
+            assert took < TIMEOUT_S / 4, f"switch-off confirmed {took:.3f} s after the stop"
+        finally:
+            signal.signal(signal.SIGINT, old)
+            src.close()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_reply_to_the_grammar():
+    """As above, but the line held back is the late one (``hold_once``: the first ``STS``'s
+    ``STANDBY``, from before the tube was switched on) and the resent ``STS``'s own ``XON`` is
+    still on its way when the stop comes. The switch-off's ``XOF`` goes out at once; that ``XON``
+    then comes during its read and is discarded as the ``STS``'s (it is no echo of ``XOF``): the
+    switch-off is confirmed only by an ``STS`` asked after the ``XOF``, the tube off."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    old = signal.signal(signal.SIGINT, _raise_interrupt)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("STS")
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            n = len(model.log)
+
+            def stop_within_the_hold():
+                while not any(e.command == "STS" for e in model.log[n:]):
+                    time.sleep(0.002)
+                # the held STANDBY is sent as the STS arrives, its own reply LATENCY_S later
+                time.sleep(LATENCY_S / 3)
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_within_the_hold, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)
+            watcher.join(timeout=2)
+            assert src.off().confirms_off and not model.xray_on
+            after = [(e.command, e.reply) for e in model.log[n:]]
+            assert after[0] == ("STS", "XON") and after[1] == ("XOF", "XOF"), after
+            assert all(c == "STS" for c, _ in after[2:]) and after[-1][1] != "XON", after
+        finally:
+            model.slow(0)
+            signal.signal(signal.SIGINT, old)
             src.close()
