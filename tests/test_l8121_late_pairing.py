@@ -36,6 +36,21 @@ LATENCY_S = 0.1
 FAST = dict(poll_s=0.05, min_interval_s=0.02, timeout_s=TIMEOUT_S)
 
 
+def _sts_owed_then_left_on(model, src, delay: float | None = None) -> None:
+    """The unit answers every command ``LATENCY_S`` late, and one ``STS`` later still: held back
+    until the next command comes (``hold_once``), or ``delay`` seconds (``delay_once``). The driver
+    times out on it (so it owes that ``STS`` a reply), and then the tube is switched on behind its
+    back: the state the owed reply reports is stale."""
+    model.slow(LATENCY_S)
+    if delay is None:
+        model.hold_once("STS")
+    else:
+        model.delay_once(delay, "STS")
+    with pytest.raises(DeviceError, match="no reply to STS"):
+        src.status()
+    model.left_on()
+
+
 def test_a_late_reconnect_check_reply_is_not_read_as_the_next_commands():
     """The reviewer's case: a read error during ``SIN`` reopens the port; the reconnect check's
     ``SRL`` is answered late (held); the next query reopens and asks ``SRL`` again. The first
@@ -66,11 +81,7 @@ def test_a_stale_standby_is_not_read_as_the_state_of_a_tube_switched_on_since():
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
-            model.slow(LATENCY_S)
-            model.hold_once("STS")
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.left_on()
+            _sts_owed_then_left_on(model, src)
             assert src.status() == SourceState.XRAY_ON
         finally:
             model.slow(0)
@@ -87,11 +98,7 @@ def test_a_stale_standby_never_confirms_a_switch_off():
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
-            model.slow(LATENCY_S)
-            model.hold_once("STS")
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.left_on()
+            _sts_owed_then_left_on(model, src)
             n = len(model.log)
             assert src.off() in (SourceState.STANDBY, SourceState.WARMUP_NEEDED)
             after = model.log[n:]
@@ -112,11 +119,7 @@ def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
-            model.slow(LATENCY_S)
-            model.delay_once(2 * TIMEOUT_S, "STS")
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.left_on()
+            _sts_owed_then_left_on(model, src, delay=2 * TIMEOUT_S)
             assert src.status() == SourceState.XRAY_ON
         finally:
             model.slow(0)
@@ -177,11 +180,7 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
-            model.slow(LATENCY_S)
-            model.hold_once("STS")
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.left_on()
+            _sts_owed_then_left_on(model, src)
             n = len(model.log)
 
             def stop_within_the_hold():
