@@ -101,15 +101,23 @@ def _count(n) -> int:
     return n
 
 
-def implied_pixel_size_mm(preset: str | None, shape) -> float:
+def implied_pixel_size(preset: str | None, shape) -> tuple[float, str | None]:
     """The pitch a folder of frames is recorded with when the protocol gives none: the preset's,
     else 0.05 mm (the C7942's, C7942.md) times the binning a 2240, 1120 or 560 column frame
-    means, else 0.05 mm. One rule for the watcher and for a resume's comparison of pitches."""
+    means, else 0.05 mm; and where it comes from, as the experiment file records it (None where
+    it is only the C7942's assumed). One rule for the watcher (its pitch and the pitch's origin)
+    and for a resume's comparison of pitches."""
     if preset is not None:
-        return PRESETS[preset].pixel_size_mm
+        return PRESETS[preset].pixel_size_mm, f"the detector preset {preset}"
     if shape is not None and shape[1] in (2240, 1120, 560):
-        return 0.05 * (2240 // shape[1])
-    return 0.05
+        b = 2240 // shape[1]
+        return 0.05 * b, f"the frames' width, {shape[1]} columns: the C7942 binned {b}x{b}"
+    return 0.05, None
+
+
+def implied_pixel_size_mm(preset: str | None, shape) -> float:
+    """:func:`implied_pixel_size`'s pitch alone."""
+    return implied_pixel_size(preset, shape)[0]
 
 
 # -- the vendor software's folder ---------------------------------------------------------------
@@ -225,12 +233,7 @@ class FolderWatcher:
         file records no pitch, and its readers say they assume it."""
         if self._pixel_size_given:
             return "the protocol's [detector] pixel_size_mm"
-        if self.preset is not None:
-            return f"the detector preset {self.preset}"
-        if self.shape is not None and self.shape[1] in (2240, 1120, 560):
-            b = 2240 // self.shape[1]
-            return f"the frames' width, {self.shape[1]} columns: the C7942 binned {b}x{b}"
-        return None
+        return implied_pixel_size(self.preset, self.shape)[1]
 
     # -- the Detector interface ------------------------------------------------------------------
     def arm(self) -> None:

@@ -3410,8 +3410,8 @@ class L8121:
         # setting (_beam_span), where the beam starts or ends. The new one alone, lower (250 ->
         # 8 µA: 2 µA, not 5), called a stable meter's two readings at the old setting a climb,
         # and the fall of a unit that ramps again from zero a dropped beam (review s55rvacq)
-        high = self._beam_span((kv, ua))[1]
-        jitter = (max(tol_kv, c.tolerance_kv(high[0])), max(tol_ua, c.tolerance_ua(high[1])))
+        lower, higher = self._beam_span((kv, ua))  # (set before the wait: the same all through it)
+        jitter = (max(tol_kv, c.tolerance_kv(higher[0])), max(tol_ua, c.tolerance_ua(higher[1])))
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
@@ -3423,7 +3423,7 @@ class L8121:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
             # a ramp from zero after XON never passes the setting by the drop bound's margin, nor
             # one after set_values() the higher of the old and the new ones (_beam_span)
-            above = _beam_above(m_kv, m_ua, *self._beam_span((kv, ua))[1], c.beam_drop_fraction)
+            above = _beam_above(m_kv, m_ua, *higher, c.beam_drop_fraction)
             if above is not None:
                 self._trip(f"beam above the setting: {above}")
             highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
@@ -3447,7 +3447,7 @@ class L8121:
                 m_ua,
                 highest if after_xon else climbed,
                 jitter,
-                self._beam_span((kv, ua))[0],
+                lower,
                 c.beam_drop_fraction,
             )
             if fell:

@@ -126,14 +126,13 @@ def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
             src.close()
 
 
-def test_a_stop_while_a_reply_is_held_back_switches_off_promptly():
+def test_a_stop_while_a_reply_is_held_back_switches_off_promptly(sigint_default):
     """One ``STS`` is never answered (the controller lost it); the next ``STS``'s own reply fits
     both it and the one owed, so the transport holds it back for a second line. A stop (SIGINT,
     raised as KeyboardInterrupt) landing in that wait must leave a switch-off as prompt as any
     other: the reply was already read, and the wait for it to complete cost the rest of a reply
     time-out, confirmation well past a quarter of one (review s55rvlate)."""
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
-    old = signal.signal(signal.SIGINT, _raise_interrupt)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
@@ -161,22 +160,16 @@ def test_a_stop_while_a_reply_is_held_back_switches_off_promptly():
             took = time.monotonic() - kill["t"]
             assert took < TIMEOUT_S / 4, f"switch-off confirmed {took:.3f} s after the stop"
         finally:
-            signal.signal(signal.SIGINT, old)
             src.close()
 
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
-def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_reply_to_the_grammar():
+def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_reply_to_the_grammar(sigint_default):
     """As above, but the line held back is the late one (``hold_once``: the first ``STS``'s
     ``STANDBY``, from before the tube was switched on) and the resent ``STS``'s own ``XON`` is
     still on its way when the stop comes. The switch-off's ``XOF`` goes out at once; that ``XON``
     then comes during its read and is discarded as the ``STS``'s (it is no echo of ``XOF``): the
     switch-off is confirmed only by an ``STS`` asked after the ``XOF``, the tube off."""
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
-    old = signal.signal(signal.SIGINT, _raise_interrupt)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
         try:
@@ -202,5 +195,4 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
             assert all(c == "STS" for c, _ in after[2:]) and after[-1][1] != "XON", after
         finally:
             model.slow(0)
-            signal.signal(signal.SIGINT, old)
             src.close()

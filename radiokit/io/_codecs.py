@@ -413,13 +413,14 @@ def check_file_header(path, header: dict, budget) -> None:
             path, f"a {describe(header)} image of {w}x{h}: no pixels (corrupt, or a height given later, by DNL)"
         )
     what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
-    extra = check_bytes(header, os.path.getsize(path))
+    stored = os.path.getsize(path)
+    extra = check_bytes(header, stored)
     check_budget(
         path, decoded + extra, what + (", decoded twice (the second checks its coded data)" if extra else ""), budget
     )
     # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
     codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
-    check_proportion(path, what, decoded, decoded, os.path.getsize(path), codec, budget)
+    check_proportion(path, what, decoded, decoded, stored, codec, budget)
     if c not in (1, 3):
         raise FormatError(
             path, f"a {describe(header)} image: {c} components (CMYK, or grey with alpha), not one channel of counts"

@@ -1037,9 +1037,12 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
     # what the field carries out of the frame is not observed: the moving image holds nothing there
     judged = obs if out is None else obs & ~out
     q.observed_fraction = float(judged.sum() / n_obj) if n_obj else 0.0
+
+    def interior_share(seen):  # the whole object's when it has no interior
+        return float(seen[inner].mean()) if inner.any() else (float(seen.sum() / n_obj) if n_obj else 0.0)
+
     # the interior's share alone reads the affine map (p.obs_interior; the same as obs without it)
-    seen = p.obs_interior if out is None else p.obs_interior & ~out
-    q.interior_observed = float(seen[inner].mean()) if inner.any() else (float(seen.sum() / n_obj) if n_obj else 0.0)
+    q.interior_observed = interior_share(p.obs_interior if out is None else p.obs_interior & ~out)
     q.misaligned_fraction, q.excess_kept, left = _misaligned(p, w, d, judged)
     q.residual_motion = _residual_step(p, w, judged)
     reasons = _left_in_frame(obs, judged)
@@ -1061,7 +1064,7 @@ def _observed(reg, p, w, d, scale=1.0, out=None):
             # review: "2 % of the interior (92 % of the object; confidence map)", the map 69 %)
             where, of_it = "the object's interior", ""
             if p.obs_interior is not p.obs:
-                share = float(judged[inner].mean()) if inner.any() else q.observed_fraction
+                share = interior_share(judged)
                 where += " under a local affine motion of each window"
                 of_it = f"{100 * share:.0f} % of it and "
             reasons.append(

@@ -340,18 +340,25 @@ def _lmin(f, spacing, highpass, sig2, mask=None, window=None):
     return _lmins(f, spacing, highpass, sig2, mask, (window,))[0]
 
 
-def _lmins(f, spacing, highpass, sig2, mask=None, windows=(None,)):
-    """:func:`_lmin` for each of ``windows`` (sigmas, px; None: ``spacing``), the gradients
-    computed once."""
+def _map_gradients(f, spacing, highpass, mask=None):
+    """``(gy, gx, inside)``: the map's gradients of ``f`` (high-passed at ``highpass x spacing``,
+    smoothed by 1 px), zero outside ``mask``; ``inside``: the mask as float32 (None without one)."""
     hp = f - _gauss(f, highpass * spacing)
     gy, gx = np.gradient(_gauss(hp, 1.0))
-    bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
     inside = None
     if mask is not None:
         # a masked similarity sees no structure outside the mask: a flat band beside a texture
         # read 100 % observed through the windows' reach, and a field 2 px off was trusted there
         inside = np.asarray(mask, np.float32)
         gy, gx = gy * inside, gx * inside
+    return gy, gx, inside
+
+
+def _lmins(f, spacing, highpass, sig2, mask=None, windows=(None,), grads=None):
+    """:func:`_lmin` for each of ``windows`` (sigmas, px; None: ``spacing``), the gradients
+    computed once (``grads``: :func:`_map_gradients`' of the same arguments, already computed)."""
+    gy, gx, inside = _map_gradients(f, spacing, highpass, mask) if grads is None else grads
+    bias = _deriv_noise_var(1.0) * sig2  # noise's share of each squared derivative
     out = []
     for window in windows:
         s = spacing if window is None else window
@@ -602,17 +609,18 @@ def observability(
     sig2 = sig_map * sig_map
     # what pure noise of this level shows as structure 99 % of the time is not information
     near = PINNED_REACH * spacing / WINDOW_REACH  # the pinned map's window (sigma, px)
-    lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,))
+    grads = _map_gradients(f, spacing, highpass, mask)  # (the affine bound's too)
+    lmin, *lmin_near = _lmins(f, spacing, highpass, sig2, mask, (None, near) if pinned else (None,), grads)
     lmin = np.maximum(lmin - _noise_lmin(spacing, highpass) * sig2, 0)
     info = _window_area(spacing) * lmin / (2 * (sig2 + floor2))
+    flat = flat_common(f, moving) if moving is not None else None
     prior = affine_prior
     if prior is None and not AFFINE_INTERIOR_ONLY:
         prior = AFFINE_PRIOR
     translation = None
     if prior is not None:
-        translation = _confidence(info, bound_scale, flat_common(f, moving) if moving is not None else None)[0]
-        info = np.minimum(info, _affine_info(f, spacing, highpass, sig2, floor2, mask, prior))
-    flat = flat_common(f, moving) if moving is not None else None
+        translation = _confidence(info, bound_scale, flat)[0]
+        info = np.minimum(info, _affine_info(grads, spacing, highpass, sig2, floor2, prior))
     conf, bound = _confidence(info, bound_scale, flat)
     pinned_conf = None
     if pinned:
@@ -625,19 +633,17 @@ def observability(
     return Observability(conf, bound, sigma, obj, pinned_conf, translation)
 
 
-def _affine_info(f, spacing, highpass, sig2, floor2, mask, prior):
+def _affine_info(grads, spacing, highpass, sig2, floor2, prior):
     """A window centre's information on its translation when the window moves by a local affine
-    field (:func:`affine_lmins`), in the map's units; ``prior``: the prior standard deviation of
-    each element of the displacement's gradient (px per px; a field of amplitude ``a`` and
-    correlation length ``L`` has gradients of about ``a / L``). The noise-only floor is the
+    field (:func:`affine_lmins`), in the map's units; ``grads``: the map's (:func:`_map_gradients`);
+    ``prior``: the prior standard deviation of each element of the displacement's gradient (px
+    per px; a field of amplitude ``a`` and correlation length ``L`` has gradients of about
+    ``a / L``). The noise-only floor is the
     translation's (:func:`_noise_lmin`): a marginal of pure noise is no larger, so this errs
     towards unobserved."""
-    hp = f - _gauss(f, highpass * spacing)
-    gy, gx = np.gradient(_gauss(hp, 1.0))
+    gy, gx, inside = grads
     bias = _deriv_noise_var(1.0) * sig2
-    if mask is not None:
-        inside = np.asarray(mask, np.float32)
-        gy, gx = gy * inside, gx * inside
+    if inside is not None:
         bias = bias * _window(inside, spacing)
     area = _window_area(spacing)
     s2 = sig2 + floor2
@@ -647,7 +653,7 @@ def _affine_info(f, spacing, highpass, sig2, floor2, mask, prior):
     if step > 1:  # back to every pixel: the coarse samples at step // 2 + i step
         import cv2
 
-        n0, n1 = f.shape
+        n0, n1 = gy.shape
         la = cv2.resize(la.astype(np.float32), (la.shape[1] * step, la.shape[0] * step), interpolation=cv2.INTER_LINEAR)
         la = np.pad(la, ((0, max(0, n0 - la.shape[0])), (0, max(0, n1 - la.shape[1]))), mode="edge")[:n0, :n1]
     la = np.maximum(la - _noise_lmin(spacing, highpass) * sig2, 0)
