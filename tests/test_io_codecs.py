@@ -630,3 +630,38 @@ def test_a_reversible_jpeg_2000_cut_to_a_rate_is_not_said_lossless(tmp_path):
     assert "reversible 5/3" in got.meta["compression"]
     assert not got.meta["compression"].endswith(", lossless"), got.meta["compression"]
     assert "does not say" in got.meta["compression"]
+
+
+def _traced_peak(path) -> int:
+    """The most memory Python and numpy held at once while ``read`` took the file (imagecodecs'
+    outputs are numpy arrays, so traced; the codecs' own C buffers are not)."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        _quiet_read(path)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls", "j2k"])
+def test_a_compressed_dicom_s_budget_counts_its_decode_s_working_memory(tmp_path, name):
+    """The budget is charged what reading a compressed DICOM holds at its peak, not the frames alone:
+    the pixel element, the stack, the frame's codestream, its decode (and a JPEG's check decode,
+    OpenJPEG's 32-bit image). A budget 10 % under the traced peak is refused; one 10 % over that
+    peak plus what the C codec holds untraced (OpenJPEG: 4 bytes a sample) reads. (10 %: pydicom's
+    and Python's own allocations beside the pixels.) The frames alone, 2 MiB, were all it counted:
+    a read taking 2.5-6 times that passed a budget just over it."""
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[:1024, :1024]
+    frame = np.clip(2000 + 800 * np.sin(x / 50) * np.cos(y / 70) + rng.normal(0, 30, x.shape), 0, 4095)
+    frames = frame.astype(np.uint16)[None]
+    path = _dicom(tmp_path / f"{name}.dcm", frames, *LOSSLESS[name])
+    peak = _traced_peak(path)
+    assert peak > 2 * frames.nbytes  # (more than the frames: else nothing is measured here)
+    with pytest.raises(FormatError, match=rf"{name}\.dcm: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))
+    untraced = 4 * frames.size if name == "j2k" else 0
+    got = read(path, budget=int(1.1 * (peak + untraced)))
+    np.testing.assert_array_equal(got.data, frames)
