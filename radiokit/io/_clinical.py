@@ -17,7 +17,14 @@ import numpy as np
 from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._codecs import check_dicom_proportion, compressed_frame, compressed_syntaxes, say_lossy_dicom
+from radiokit.io._codecs import (
+    check_dicom_proportion,
+    compressed_frame,
+    compressed_syntaxes,
+    frame_decode_bytes,
+    say_lossy_dicom,
+    syntax_header,
+)
 from radiokit.io._experiment import usable_pixel_sizes
 
 
@@ -531,17 +538,15 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         raise FormatError(
             path, "a DICOM image with a Modality LUT Sequence (a table, not a slope), which radiokit does not apply"
         )
-    # what the decoder allocates: every frame at once for RLE (pydicom decodes a frame at a
-    # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
-    check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
-    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
-    if syntax in compressed_syntaxes():
-        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
     slope, intercept = (
         _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
     )
     _check_rescale(path, dtype, slope, intercept)
+    if syntax in compressed_syntaxes():  # (a bomb said as one first: no budget given, it may pass a large one's)
+        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
+    held, rescale = _check_dicom_budget(path, syntax, n, rows, cols, dtype, (slope, intercept), budget)
+    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     meta = {
         "n": n,
         "rows": rows,
@@ -569,7 +574,53 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
+    geometry |= {"held": held, "rescale_bytes": rescale, "budget": budget}  # (a frame's own decode is checked too)
     return ds, geometry, meta
+
+
+def _check_dicom_budget(path, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> tuple[int, int]:
+    """Refuse a DICOM whose read would hold more than the budget (:func:`dicom_read_bytes`); what
+    it holds throughout and a rescaled frame's bytes, for each frame's own check as decoded."""
+    held, work, rescaled = dicom_read_bytes(path, syntax, n, rows, cols, dtype, rescale)
+    check_budget(
+        path,
+        held + work + rescaled,
+        f"its header's {n} frame(s) of {rows}x{cols} {dtype}, read with one frame's decoding ({syntax.name})",
+        budget,
+    )
+    return held, rescaled
+
+
+def dicom_read_bytes(path, syntax, n: int, rows: int, cols: int, dtype, rescale=(1, 0)) -> tuple[int, int, int]:
+    """What ``read()`` of a DICOM holds at its peak, in three parts: what it keeps throughout (the
+    pixel element's value, which pydicom reads whole at the first frame, and the stack of every
+    frame as read), one frame's decoding (bounded before any is read: its codestream by the file's
+    bytes), and a rescaled frame (the Modality LUT's values, beside the stored ones). Why: the
+    frames alone were counted, and reading took 2.5 to 6.5 times them (benchmarks/README.md,
+    bench_dicom_decode_memory.py; a 2240 x 2240 frame, 9.6 MiB, 25 to 62 MiB)."""
+    from pydicom import uid
+
+    samples = rows * cols
+    frame = samples * np.dtype(dtype).itemsize
+    out = rescaled_dtype(dtype, *rescale).itemsize * samples
+    size = os.path.getsize(path)
+    if syntax in compressed_syntaxes():
+        element = size
+        work = frame_decode_bytes(syntax_header(syntax, rows, cols, dtype), size)
+    elif syntax == uid.RLELossless:
+        # pydicom's PackBits decoder: the frame's fragments joined and each segment's slice of
+        # them (2 x the stream, bounded by the file), its bytearray of the frame and the array
+        # made of it (2 frames), a segment decoded (a byte a sample, its bytearray grown by up to
+        # an eighth more) and the slice of it put in place (a byte a sample)
+        element, work = size, 2 * size + 2 * frame + samples * 9 // 8 + samples
+    elif syntax == uid.DeflatedExplicitVRLittleEndian:
+        # the whole dataset inflated into one buffer, which pydicom keeps, and the element copied
+        # out of it; then a frame's array
+        element, work = 2 * n * frame, frame
+    else:
+        element, work = n * frame, frame  # the element, and the frame's array copied out of it
+    rescaled = out if tuple(rescale) != (1, 0) else 0
+    return element + n * out, work, rescaled
 
 
 def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
@@ -719,4 +770,7 @@ def rescaled(stored: np.ndarray, slope, intercept) -> np.ndarray:
     out = rescaled_dtype(stored.dtype, slope, intercept)
     if out == stored.dtype:
         return stored
-    return stored.astype(out) * out.type(slope) + out.type(intercept)
+    values = stored.astype(out)  # in place from here: one frame of the values beside the stored (the budget's)
+    values *= out.type(slope)
+    values += out.type(intercept)
+    return values
