@@ -1,0 +1,82 @@
+"""Files from writers radiokit had not met (session 56's foreign-file trial): valid DICOM, TIFF,
+PNG and HDF5 made by pydicom, tifffile, OpenCV and h5py with unusual attributes read with the
+values their own libraries give, and what radiokit cannot read is one line naming the real cause."""
+
+import numpy as np
+import pytest
+
+from radiokit.io import FormatError, read
+from tests.conftest import run_cli
+
+
+def _counts(shape=(40, 50), bits=12, seed=56):
+    return np.random.default_rng(seed).integers(0, 1 << bits, size=shape, dtype=np.uint16)
+
+
+def _dx(path, words, *, bits_stored=12, high_bit=None, photometric="MONOCHROME2", **attrs):
+    """A DX DICOM of 16-bit ``words`` as pydicom writes one."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1"  # DX for presentation
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "DX"
+    ds.Rows, ds.Columns = words.shape
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, photometric
+    ds.BitsAllocated, ds.BitsStored, ds.PixelRepresentation = 16, bits_stored, 0
+    ds.HighBit = bits_stored - 1 if high_bit is None else high_bit
+    for name, value in attrs.items():
+        setattr(ds, name, value)
+    ds.PixelData = words.astype("<u2").tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_counts_stored_in_the_top_bits_of_their_word_are_refused_not_misread(tmp_path):
+    """HighBit 15 with BitsStored 12: the counts are the word's top 12 bits (ACR-NEMA's layout, which
+    DX and CR forbid: HighBit = BitsStored - 1). pydicom masks the low 12 bits, and radiokit read
+    them as counts: every value wrong (word & 0xFFF is (count << 4) & 0xFFF), without a word."""
+    counts = _counts()
+    path = _dx(tmp_path / "top.dcm", counts << 4, high_bit=15)
+    with pytest.raises(FormatError, match=r"top\.dcm: .*HighBit 15.*BitsStored 12") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    # the layout every writer uses still reads, every count as written
+    np.testing.assert_array_equal(read(_dx(tmp_path / "low.dcm", counts)).data[0], counts)
+
+
+def test_a_dicom_cut_before_its_pixel_data_is_said_to_be_truncated(tmp_path, capfd):
+    """A DICOM cut inside its header: pydicom keeps what it read and drops the cut element without
+    a word, and radiokit called the file "a report, structured data or a header only". Its last
+    element (or its file meta) runs past the file's end: truncated."""
+    whole = _dx(tmp_path / "whole.dcm", _counts()).read_bytes()
+    pixel_data = whole.rindex(b"\xe0\x7f\x10\x00")  # (7FE0,0010)'s tag, the pixels' element
+    for cut in (300, pixel_data - 30):
+        path = tmp_path / f"cut{cut}.dcm"
+        path.write_bytes(whole[:cut])
+        res = run_cli("info", path)
+        assert res.returncode == 2
+        err = res.stderr.strip()
+        assert f"cut{cut}.dcm" in err and "truncated" in err and "report" not in err, err
+        assert len(err.splitlines()) == 1, err
+    # a whole file without pixels is still what it was said to be
+    from pydicom import dcmread
+
+    ds = dcmread(tmp_path / "whole.dcm")
+    del ds.PixelData
+    ds.save_as(tmp_path / "header.dcm")
+    with pytest.raises(FormatError, match=r"header\.dcm: a DICOM file, but it has no pixel data"):
+        read(tmp_path / "header.dcm")
+
+
+def test_a_dicom_without_a_photometric_interpretation_is_not_called_colour(tmp_path):
+    """One sample a pixel and PhotometricInterpretation empty (a type-1 attribute a writer left
+    blank): it was refused as "a colour DICOM image (1 samples per pixel)"."""
+    path = _dx(tmp_path / "blank.dcm", _counts(), photometric="")
+    with pytest.raises(FormatError, match=r"blank\.dcm: .*no PhotometricInterpretation") as info:
+        read(path)
+    assert "colour" not in str(info.value)
