@@ -419,12 +419,43 @@ def _tag_number(path, ds, tag: str, default):
         raise FormatError(path, f"a DICOM file whose {tag} is not a number ({exc})") from None
 
 
+def _check_not_cut(path, ds) -> None:
+    """Refuse, as truncated, a DICOM whose last element (or whose file meta) runs past the file's
+    end. Why: pydicom keeps the elements it read and drops a cut one without a word, and a file
+    cut before its pixel data was called "a report, structured data or a header only". The
+    elements' offsets are pydicom's (read, not yet decoded): an element already decoded, or one
+    of undefined length (a sequence), leaves the end unknown and the file as it was said."""
+    size = os.path.getsize(path)
+    group = ds.file_meta.get("FileMetaInformationGroupLength") if hasattr(ds, "file_meta") else None
+    ends = [132 + 12 + int(group)] if group is not None and getattr(ds, "preamble", None) is not None else []
+    for tag in ds.keys():
+        item = ds.get_item(tag)
+        tell, length = getattr(item, "value_tell", None), getattr(item, "length", None)
+        if tell is None or length is None or length == 0xFFFFFFFF:
+            return
+        ends.append(tell + length)
+    if ends and max(ends) > size:
+        raise FormatError(
+            path,
+            f"a DICOM file whose elements run to byte {max(ends)} of a {size}-byte file, cut before its pixel data: "
+            "truncated",
+        )
+
+
 def _decodable_syntax(path, ds):
     """The transfer syntax of ``ds``, refused in one line where there are no pixels to decode or
     pydicom cannot decode them alone (:func:`_decodable_syntaxes`)."""
     if "PixelData" not in ds:
         other = [k for k in ("FloatPixelData", "DoubleFloatPixelData") if k in ds]
+        _check_not_cut(path, ds)
         what = f"its pixels are {other[0]}, which radiokit does not read" if other else "it has no pixel data"
+        if not other and "Rows" in ds and "Columns" in ds:
+            # (a cut at an element's boundary leaves a shorter file of whole elements)
+            raise FormatError(
+                path,
+                f"a DICOM file, but {what}, though its header describes a {ds.Rows}x{ds.Columns} image: "
+                "truncated before its pixels, or they were removed",
+            )
         raise FormatError(path, f"a DICOM file, but {what} (a report, structured data or a header only)")
     syntax = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
     if syntax is None:
@@ -528,12 +559,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
             path,
             f"a DICOM file whose pixels are {rows}x{cols} of {allocated} bits allocated: not an image radiokit reads",
         )
-    if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
-        raise FormatError(
-            path,
-            f"a {photometric or 'colour'} DICOM image ({samples} samples per pixel): a radiograph is one channel of "
-            "counts (MONOCHROME1 or MONOCHROME2)",
-        )
+    _check_photometric(path, samples, photometric)
+    _check_high_bit(path, ds, stored)
     if "ModalityLUTSequence" in ds:
         raise FormatError(
             path, "a DICOM image with a Modality LUT Sequence (a table, not a slope), which radiokit does not apply"
@@ -621,6 +648,38 @@ def dicom_read_bytes(path, syntax, n: int, rows: int, cols: int, dtype, rescale=
         element, work = n * frame, frame  # the element, and the frame's array copied out of it
     rescaled = out if tuple(rescale) != (1, 0) else 0
     return element + n * out, work, rescaled
+
+
+def _check_photometric(path, samples: int, photometric: str) -> None:
+    """Refuse an image that is not one channel of counts whose meaning (lowest value black or white) is said."""
+    if samples == 1 and not photometric:  # (type 1: a writer left it blank)
+        raise FormatError(
+            path,
+            "a DICOM image of one sample a pixel with no PhotometricInterpretation: whether its lowest value shows "
+            "black (MONOCHROME2) or white (MONOCHROME1) is not said; set it (pydicom: ds.PhotometricInterpretation)",
+        )
+    if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
+        raise FormatError(
+            path,
+            f"a {photometric or 'colour'} DICOM image ({samples} samples per pixel): a radiograph is one channel of "
+            "counts (MONOCHROME1 or MONOCHROME2)",
+        )
+
+
+def _check_high_bit(path, ds, stored: int) -> None:
+    """Refuse counts that are not the low BitsStored bits of their word (HighBit other than
+    BitsStored - 1: ACR-NEMA's layout, which the DX, CR and most image IODs forbid). Why: pydicom
+    reads the low BitsStored bits whatever HighBit says, and a 12-bit count in a word's top bits
+    read as (count << 4) & 0xFFF, every value wrong, without a word."""
+    value = ds.get("HighBit")
+    if value in (None, "") or int(value) == stored - 1:
+        return
+    raise FormatError(
+        path,
+        f"a DICOM file whose HighBit {int(value)} is not its BitsStored {stored} less one: its counts are not the "
+        "low bits of each word, where DICOM images keep them and pydicom and radiokit read them; rewrite its pixels "
+        f"with HighBit {stored - 1}",
+    )
 
 
 def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
