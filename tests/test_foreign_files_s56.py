@@ -82,3 +82,52 @@ def test_a_dicom_without_a_photometric_interpretation_is_not_called_colour(tmp_p
     with pytest.raises(FormatError, match=r"blank\.dcm: .*no PhotometricInterpretation") as info:
         read(path)
     assert "colour" not in str(info.value)
+
+
+def _functional_groups(path, slopes, intercepts, shared: bool):
+    """``path``'s dataset with its Modality LUT where an enhanced multi-frame image keeps it: a
+    Pixel Value Transformation in the shared functional groups, or one a frame, none at the top."""
+    from pydicom import dcmread
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    def group(slope, intercept):
+        lut = Dataset()
+        lut.RescaleSlope, lut.RescaleIntercept, lut.RescaleType = str(slope), str(intercept), "US"
+        item = Dataset()
+        item.PixelValueTransformationSequence = Sequence([lut])
+        return item
+
+    ds = dcmread(path)
+    if shared:
+        ds.SharedFunctionalGroupsSequence = Sequence([group(slopes[0], intercepts[0])])
+    else:
+        ds.PerFrameFunctionalGroupsSequence = Sequence([group(s, b) for s, b in zip(slopes, intercepts)])
+    ds.save_as(path)
+    return path
+
+
+def test_an_enhanced_image_s_modality_lut_in_its_functional_groups_is_applied(tmp_path):
+    """An enhanced multi-frame image keeps RescaleSlope/Intercept in its functional groups, not at
+    the top level: they were ignored (as pydicom's apply_modality_lut ignores them), and the stored
+    values read as the image's, without a word. Shared, or the same for every frame, they are
+    applied as a top-level one is; differing by frame, refused (one stack has one scale)."""
+    counts = _counts((3, 40, 50))
+    one = _dx(tmp_path / "multi.dcm", counts.reshape(-1, 50), bits_stored=12)
+    from pydicom import dcmread
+
+    ds = dcmread(one)
+    ds.Rows, ds.NumberOfFrames = 40, 3
+    ds.save_as(one)
+    shared = _functional_groups(one, [0.5], [-100], shared=True)
+    np.testing.assert_allclose(read(shared).data, counts * 0.5 - 100, rtol=0, atol=0)
+    same = _dx(tmp_path / "same.dcm", counts.reshape(-1, 50))
+    ds = dcmread(same)
+    ds.Rows, ds.NumberOfFrames = 40, 3
+    ds.save_as(same)
+    _functional_groups(same, [2, 2, 2], [-7, -7, -7], shared=False)
+    np.testing.assert_array_equal(read(same).data, counts.astype(np.int64) * 2 - 7)
+    _functional_groups(same, [1, 2, 3], [0, 0, 0], shared=False)
+    with pytest.raises(FormatError, match=r"same\.dcm: .*RescaleSlope.*differ") as info:
+        read(same)
+    assert "\n" not in str(info.value)
