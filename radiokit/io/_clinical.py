@@ -566,9 +566,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
             path, "a DICOM image with a Modality LUT Sequence (a table, not a slope), which radiokit does not apply"
         )
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
-    slope, intercept = (
-        _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
-    )
+    slope, intercept, rescale_type = _modality_lut(path, ds)
     _check_rescale(path, dtype, slope, intercept)
     if syntax in compressed_syntaxes():  # (a bomb said as one first: no budget given, it may pass a large one's)
         check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
@@ -591,7 +589,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         meta["dicom_rescale"] = {
             "slope": slope,
             "intercept": intercept,
-            "type": str(ds.get("RescaleType", "")) or None,
+            "type": rescale_type,
         }
         meta["stored_dtype"] = str(dtype)
     if photometric == "MONOCHROME1":
@@ -648,6 +646,42 @@ def dicom_read_bytes(path, syntax, n: int, rows: int, cols: int, dtype, rescale=
         element, work = n * frame, frame  # the element, and the frame's array copied out of it
     rescaled = out if tuple(rescale) != (1, 0) else 0
     return element + n * out, work, rescaled
+
+
+def _lut_of(path, item) -> tuple:
+    """``item``'s RescaleSlope, RescaleIntercept (1 and 0 where absent) and RescaleType (None)."""
+    slope, intercept = (
+        _tag_number(path, item, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
+    )
+    return slope, intercept, str(item.get("RescaleType", "")) or None
+
+
+def _modality_lut(path, ds) -> tuple:
+    """The Modality LUT's slope, intercept and type: at the top level, else where an enhanced
+    multi-frame image keeps it, in its functional groups' Pixel Value Transformation (shared, or
+    the same in every frame's). Why: pydicom's apply_modality_lut reads the top level alone, and
+    an enhanced image's stored values read as its values without a word. One stack has one
+    scale: frames whose transformations differ are refused."""
+    if "RescaleSlope" in ds or "RescaleIntercept" in ds:
+        return _lut_of(path, ds)
+
+    def transformation(group):
+        sequence = group.get("PixelValueTransformationSequence") if group is not None else None
+        return sequence[0] if sequence else None
+
+    shared = ds.get("SharedFunctionalGroupsSequence")
+    if (found := transformation(shared[0] if shared else None)) is not None:
+        return _lut_of(path, found)
+    frames = ds.get("PerFrameFunctionalGroupsSequence") or []
+    luts = {_lut_of(path, lut) if (lut := transformation(group)) is not None else (1, 0, None) for group in frames}
+    if len(luts) > 1:
+        shown = ", ".join(f"{s:g} x + {b:g}" for s, b, _ in sorted(luts, key=lambda t: t[:2])[:4])
+        raise FormatError(
+            path,
+            f"an enhanced DICOM image whose frames' RescaleSlope/RescaleIntercept differ ({shown}): one stack of "
+            "frames has one scale; split it into one file per scale",
+        )
+    return luts.pop() if luts else (1, 0, None)
 
 
 def _check_photometric(path, samples: int, photometric: str) -> None:
