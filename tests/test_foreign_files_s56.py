@@ -131,3 +131,18 @@ def test_an_enhanced_image_s_modality_lut_in_its_functional_groups_is_applied(tm
     with pytest.raises(FormatError, match=r"same\.dcm: .*RescaleSlope.*differ") as info:
         read(same)
     assert "\n" not in str(info.value)
+
+
+def test_info_says_which_pixels_a_dicom_pads(tmp_path):
+    """PixelPaddingValue marks pixels holding no image (outside the collimated field); a DX writer
+    pads a 12-bit image with 4095, which info counted as saturated without a word of why. The
+    pixels are read as stored (pydicom's values), and info now names the padding."""
+    counts = _counts() % 4000
+    counts[:5] = 4095  # the padded band
+    path = _dx(tmp_path / "padded.dcm", counts, PixelPaddingValue=4095)
+    np.testing.assert_array_equal(read(path).data[0], counts)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    rows = {line.split()[0]: line for line in res.stdout.splitlines()[1:] if line.strip()}
+    assert f"{counts[:5].size} pixel(s) >= 4095" in rows["saturated"], res.stdout
+    assert "PixelPaddingValue 4095" in rows["padding"] and "no image" in rows["padding"], res.stdout
