@@ -185,6 +185,7 @@ def _clinical_summary(meta: dict) -> dict:
         "photometric": meta.get("photometric_note") or meta.get("photometric"),
         "rescale": f"stored * {r['slope']:g} + {r['intercept']:g} (RescaleSlope/Intercept)" if r else None,
         "pixel_size_from": meta.get("pixel_size_source"),
+        "padding": meta.get("pixel_padding"),
     }
 
 

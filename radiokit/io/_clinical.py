@@ -595,6 +595,8 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if photometric == "MONOCHROME1":
         meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
         _say_inverted(path)
+    if (padding := _padding_note(ds)) is not None:
+        meta["pixel_padding"] = padding
     meta.update(_dicom_pitch(path, ds))
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
@@ -682,6 +684,22 @@ def _modality_lut(path, ds) -> tuple:
             "frames has one scale; split it into one file per scale",
         )
     return luts.pop() if luts else (1, 0, None)
+
+
+def _padding_note(ds) -> str | None:
+    """What a PixelPaddingValue (to PixelPaddingRangeLimit) says, for ``info``: those pixels hold
+    no image (outside the collimated field), though they are read as stored, as pydicom reads
+    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so."""
+    value = ds.get("PixelPaddingValue")
+    if value is None or value == "":
+        return None
+    limit = ds.get("PixelPaddingRangeLimit")
+    ranged = limit not in (None, "")
+    span = f"PixelPaddingValue {value}" + (f" to {limit}" if ranged else "")
+    return (
+        f"{span}: pixels of {'those values' if ranged else 'that value'} hold no image (outside the collimated "
+        "field); read as stored, and counted in the range and saturation above"
+    )
 
 
 def _check_photometric(path, samples: int, photometric: str) -> None:
