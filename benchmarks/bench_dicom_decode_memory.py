@@ -82,6 +82,15 @@ def write(path: Path, name: str, size: int, variant: str = "plain") -> None:
     ds.save_as(path, enforce_file_format=True)
 
 
+# the same codestreams in a file of their own (.jpg, .jls, .j2k), read by radiokit.io.read
+FILES = {"JPEGLosslessSV1": ".jpg", "JPEGExtended12Bit": ".jpg", "JPEGLSLossless": ".jls", "JPEG2000Lossless": ".j2k"}
+
+
+def write_file(path: Path, name: str, size: int) -> None:
+    bits, encode = SYNTAXES[name]
+    path.write_bytes(encode(_frame(size, bits)))
+
+
 _CHILD = r"""
 import json, sys, tracemalloc, warnings
 if sys.argv[3]:  # another tree's radiokit (--src), ahead of this one's editable install
@@ -99,14 +108,25 @@ def status(key):
         if line.startswith(key):
             return int(line.split()[1]) * 1024
 
-ds, geo, _ = open_dicom(big, None)
-if "held" in geo:
+if not big.endswith(".dcm"):  # a codestream file: what its open charges the budget
+    from radiokit.io import _codecs
+    header = _codecs.file_header(big)
+    import os
+    size = os.path.getsize(big)
+    counted = (_codecs.file_read_bytes(header, size) if hasattr(_codecs, "file_read_bytes")
+               else _codecs.decoded_bytes(header) + _codecs.check_bytes(header, size))  # (before session 56)
+    geo = None
+else:
+    ds, geo, _ = open_dicom(big, None)
+if geo is None:
+    pass
+elif "held" in geo:
     counted = geo["held"] + geo["rescale_bytes"] + _clinical.dicom_read_bytes(
         big, ds.file_meta.TransferSyntaxUID, geo["n"], geo["rows"], geo["cols"], geo["dtype"],
         (geo["slope"], geo["intercept"]))[1]
 else:  # (before session 56: the frames alone)
     counted = geo["n"] * geo["rows"] * geo["cols"] * geo["dtype"].itemsize
-del ds
+ds = None
 with open("/proc/self/clear_refs", "w") as fh:
     fh.write("5")  # VmHWM back to VmRSS
 before = status("VmRSS:")
@@ -119,10 +139,10 @@ print(json.dumps({"rss": status("VmHWM:") - before, "traced": traced, "counted":
 """
 
 
-def measure(name: str, size: int, variant: str, tmp: Path, src: str = "") -> dict:
-    small, big = tmp / "small.dcm", tmp / "big.dcm"
-    write(small, name, 64, variant)
-    write(big, name, size, variant)
+def measure(name: str, size: int, variant: str, tmp: Path, src: str = "", suffix: str = ".dcm") -> dict:
+    small, big = tmp / f"small{suffix}", tmp / f"big{suffix}"
+    for path, side in ((small, 64), (big, size)):
+        write(path, name, side, variant) if suffix == ".dcm" else write_file(path, name, side)
     out = subprocess.run(
         [sys.executable, "-c", _CHILD, str(small), str(big), src], capture_output=True, text=True, check=True
     )
@@ -136,14 +156,18 @@ def main(argv=None) -> None:
     ap.add_argument("--size", type=int, default=2240)
     ap.add_argument("--variant", choices=("plain", "signed", "rescaled"), default="plain")
     ap.add_argument("--only", nargs="*", default=None, help="these syntaxes alone (pydicom.uid names)")
+    ap.add_argument("--files", action="store_true", help="also the codestreams in files of their own")
     ap.add_argument("--src", default="", help="read with the radiokit package in this folder (git archive of a commit)")
     args = ap.parse_args(argv)
     mib = 2**20
     print(f"{args.size} x {args.size}, {args.variant}; MiB")
     print(f"{'syntax':<32} {'file':>6} {'frame':>6} {'traced':>7} {'VmHWM':>7} {'counted':>8} {'counted/peak':>12}")
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.only or SYNTAXES:
-            g = measure(name, args.size, args.variant, Path(tmp), args.src)
+        jobs = [(name, ".dcm") for name in args.only or SYNTAXES]
+        jobs += [(name, suffix) for name, suffix in FILES.items() if args.files]
+        for name, suffix in jobs:
+            g = measure(name, args.size, args.variant, Path(tmp), args.src, suffix)
+            name = name if suffix == ".dcm" else f"{name} {suffix} file"
             peak = max(g["traced"], g["rss"])
             print(
                 f"{name:<32} {g['file'] / mib:6.1f} {g['frame'] / mib:6.1f} {g['traced'] / mib:7.1f} "

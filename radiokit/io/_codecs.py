@@ -419,6 +419,12 @@ def frame_decode_bytes(header: dict, stored: int) -> int:
     return stored + image + max(2 * stored, stored + decoded + samples)
 
 
+def file_read_bytes(header: dict, stored: int) -> int:
+    """What reading a codestream file of ``stored`` bytes holds at its peak: its bytes read whole,
+    their decode (:func:`frame_decode_bytes`), and the frame read into its stack."""
+    return frame_decode_bytes(header, stored) + header["width"] * header["height"] * out_dtype(header).itemsize
+
+
 def syntax_header(syntax, rows: int, cols: int, dtype) -> dict:
     """The header a compressed DICOM's frames may have, before any is read, for the budget: its
     syntax's codec, the DICOM's image, samples as wide as BitsAllocated (a frame's own are held
@@ -446,10 +452,8 @@ def check_file_header(path, header: dict, budget) -> None:
         )
     what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
     stored = os.path.getsize(path)
-    extra = check_bytes(header, stored)
-    check_budget(
-        path, decoded + extra, what + (", decoded twice (the second checks its coded data)" if extra else ""), budget
-    )
+    twice = ", decoded twice (the second checks its coded data)" if check_bytes(header, stored) else ""
+    check_budget(path, file_read_bytes(header, stored), f"{what}{twice}, read", budget)
     # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
     codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
     check_proportion(path, what, decoded, decoded, stored, codec, budget)
