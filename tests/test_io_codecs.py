@@ -683,3 +683,17 @@ def test_a_codestream_file_s_budget_counts_its_read_s_working_memory(tmp_path, n
         read(path, budget=int(0.9 * peak))
     untraced = 4 * frame.size if name == "j2k" else 0
     np.testing.assert_array_equal(read(path, budget=int(1.1 * (peak + untraced))).data[0], frame)
+
+
+def test_a_dicom_frame_declaring_tens_of_thousands_of_tiles_is_refused_by_the_budget_before_decoding(tmp_path):
+    """The budget at open counts one tile a frame (a frame's tiles are in its own header, read only
+    at its decode); each frame's header is then held to the budget before its decode. A 4000 x 4000
+    frame in 16 x 16 tiles (62500: 0.6 GiB of OpenJPEG's structures) in a file of a few hundred
+    bytes, under a budget of 256 MiB that its image and OpenJPEG's copy fit (128 MB)."""
+    stream = bytearray(imagecodecs.jpeg2k_encode(np.zeros((16, 16), np.uint16), level=0, codecformat="J2K"))
+    struct.pack_into(">IIIIIIII", stream, 8, 4000, 4000, 0, 0, 16, 16, 0, 0)
+    frames = np.broadcast_to(np.uint16(0), (1, 4000, 4000))  # (its shape: the stream is the frame)
+    path = _dicom(tmp_path / "tiles.dcm", frames, uid.JPEG2000Lossless, lambda f: stream)
+    with pytest.raises(FormatError, match=r"tiles\.dcm: frame 0 \(JPEG 2000.*over the memory budget of 256") as info:
+        read(path, budget="256MiB")
+    assert "\n" not in str(info.value)
