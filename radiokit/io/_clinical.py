@@ -726,11 +726,16 @@ def _check_high_bit(path, ds, stored: int) -> None:
     value = ds.get("HighBit")
     if value in (None, "") or int(value) == stored - 1:
         return
+    high = int(value)
+    advice = (
+        f"shift each word right by {high + 1 - stored} bits and set HighBit {stored - 1}"
+        if high >= stored
+        else "a HighBit below them is no layout: its header is wrong"
+    )
     raise FormatError(
         path,
-        f"a DICOM file whose HighBit {int(value)} is not its BitsStored {stored} less one: its counts are not the "
-        "low bits of each word, where DICOM images keep them and pydicom and radiokit read them; rewrite its pixels "
-        f"with HighBit {stored - 1}",
+        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts are not the low bits "
+        f"of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
     )
 
 
