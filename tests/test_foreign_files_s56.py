@@ -146,3 +146,19 @@ def test_info_says_which_pixels_a_dicom_pads(tmp_path):
     rows = {line.split()[0]: line for line in res.stdout.splitlines()[1:] if line.strip()}
     assert f"{counts[:5].size} pixel(s) >= 4095" in rows["saturated"], res.stdout
     assert "PixelPaddingValue 4095" in rows["padding"] and "no image" in rows["padding"], res.stdout
+
+
+def test_a_whole_deflated_dicom_without_pixels_is_not_called_truncated(tmp_path):
+    """A deflated dataset's element offsets are in its inflated bytes, past the (smaller) file's
+    end: they say nothing of the file being cut."""
+    from pydicom import dcmread
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    ds = dcmread(_dx(tmp_path / "whole.dcm", _counts()))
+    del ds.PixelData
+    ds.ImageComments = "a comment that deflates well " * 30  # (under 1 KB: read, not deferred)
+    ds.file_meta.TransferSyntaxUID = DeflatedExplicitVRLittleEndian
+    ds.save_as(tmp_path / "deflated.dcm")
+    with pytest.raises(FormatError, match=r"deflated\.dcm: a DICOM file, but it has no pixel data") as info:
+        read(tmp_path / "deflated.dcm")
+    assert "run to byte" not in str(info.value)
