@@ -424,9 +424,15 @@ def _check_not_cut(path, ds) -> None:
     end. Why: pydicom keeps the elements it read and drops a cut one without a word, and a file
     cut before its pixel data was called "a report, structured data or a header only". The
     elements' offsets are pydicom's (read, not yet decoded): an element already decoded, or one
-    of undefined length (a sequence), leaves the end unknown and the file as it was said."""
+    of undefined length (a sequence), leaves the end unknown and the file as it was said, as does
+    a deflated dataset (offsets in its inflated bytes)."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    meta = getattr(ds, "file_meta", None) or {}
+    if meta.get("TransferSyntaxUID") == DeflatedExplicitVRLittleEndian:
+        return  # (its elements' offsets are in its inflated bytes, not the file's)
     size = os.path.getsize(path)
-    group = ds.file_meta.get("FileMetaInformationGroupLength") if hasattr(ds, "file_meta") else None
+    group = meta.get("FileMetaInformationGroupLength")
     ends = [132 + 12 + int(group)] if group is not None and getattr(ds, "preamble", None) is not None else []
     for tag in ds.keys():
         item = ds.get_item(tag)
