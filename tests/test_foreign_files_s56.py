@@ -162,3 +162,14 @@ def test_a_whole_deflated_dicom_without_pixels_is_not_called_truncated(tmp_path)
     with pytest.raises(FormatError, match=r"deflated\.dcm: a DICOM file, but it has no pixel data") as info:
         read(tmp_path / "deflated.dcm")
     assert "run to byte" not in str(info.value)
+
+
+def test_info_does_not_say_a_dicom_of_16_bits_stored_declares_no_depth(tmp_path):
+    """BitsStored 16 of BitsAllocated 16 is a DICOM's statement (as a TIFF's BitsPerSample 16, the
+    word, is not); the level is still judged from the values (writers state 16 of 12- and 14-bit
+    panels), but info said "the file declares no bit depth" of it."""
+    path = _dx(tmp_path / "word.dcm", _counts(), bits_stored=16)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.strip().startswith("saturated"))
+    assert "declares no bit depth" not in row and "BitsStored 16" in row, row
