@@ -754,7 +754,9 @@ def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
         return {"bit_depth": stored, "bit_depth_signed": True}
     if stored < allocated:
         return {"bit_depth": stored}  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
-    return {}
+    # stated, but of the whole word (writers state 16 of 12- and 14-bit panels): the level is
+    # judged from the values as a TIFF's, and info says what the file did state
+    return {"bit_depth_word": f"BitsStored {stored} of BitsAllocated {allocated}"} if allocated > 8 else {}
 
 
 def _check_pixel_length(path, ds, syntax, n: int, frame: int) -> None:
