@@ -697,3 +697,21 @@ def test_a_dicom_frame_declaring_tens_of_thousands_of_tiles_is_refused_by_the_bu
     with pytest.raises(FormatError, match=r"tiles\.dcm: frame 0 \(JPEG 2000.*over the memory budget of 256") as info:
         read(path, budget="256MiB")
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls"])
+def test_a_multi_frame_compressed_dicom_is_charged_its_largest_frame_s_stream_not_the_file(tmp_path, name):
+    """At open, one frame's decode is counted before any is read: its codestream bounded by the
+    file's bytes counted 6 streams where one is decoded at a time (a JPEG holds three copies of
+    it), and a file that fits was refused under a budget 10 % over its peak. The fragments' lengths
+    (item headers, read from the file) bound the largest frame's."""
+    rng = np.random.default_rng(8)
+    y, x = np.mgrid[:512, :512]
+    frames = np.stack(
+        [np.clip(2000 + 800 * np.sin(x / (40 + k)) + rng.normal(0, 30, x.shape), 0, 4095) for k in range(6)]
+    ).astype(np.uint16)
+    path = _dicom(tmp_path / f"{name}.dcm", frames, *LOSSLESS[name])
+    peak = _traced_peak(path)
+    np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data, frames)
+    with pytest.raises(FormatError, match=rf"{name}\.dcm: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))
