@@ -8,7 +8,8 @@ file of the same syntax): tracemalloc's (what numpy and Python allocate) and the
 high-water mark (VmHWM, reset through /proc/self/clear_refs: the C libraries' own buffers too).
 ``counted`` is what ``radiokit.io._clinical.dicom_read_bytes`` charges the budget for the read.
 
-    python benchmarks/bench_dicom_decode_memory.py [--size 2240] [--variant plain|signed|rescaled] [--src DIR]
+    python benchmarks/bench_dicom_decode_memory.py [--size 2240] [--frames 1] [--variant plain|signed|rescaled]
+        [--files] [--only NAME ...] [--src DIR]
 """
 
 from __future__ import annotations
@@ -52,9 +53,10 @@ def _frame(size: int, bits: int) -> np.ndarray:
     return np.clip(rng.poisson(mean), 0, top).astype(np.uint16)
 
 
-def write(path: Path, name: str, size: int, variant: str = "plain") -> None:
+def write(path: Path, name: str, size: int, variant: str = "plain", frames: int = 1) -> None:
     bits, encode = SYNTAXES[name]
     frame = _frame(size, bits)
+    stack = [np.roll(frame, k, axis=1) for k in range(frames)]  # (each frame its own stream)
     syntax = getattr(uid, name)
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"
@@ -64,14 +66,17 @@ def write(path: Path, name: str, size: int, variant: str = "plain") -> None:
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID
     ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *frame.shape, 1, "MONOCHROME2"
+    if frames > 1:
+        ds.NumberOfFrames = frames
     ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16 if bits > 8 else 8, bits, bits - 1
     ds.PixelRepresentation = 1 if variant == "signed" else 0
     if variant == "rescaled":
         ds.RescaleSlope, ds.RescaleIntercept = "0.5", "-1024"
+    frame = np.stack(stack) if frames > 1 else frame
     if encode is None and variant == "signed":  # the same words, as pydicom's encoder wants them typed
         frame = frame.view(np.int16)
     if encode is not None:
-        ds.PixelData = encapsulate([encode(frame)])
+        ds.PixelData = encapsulate([encode(f) for f in stack])
         ds["PixelData"].VR = "OB"
     elif name == "RLELossless":
         ds.PixelData = b""
@@ -123,7 +128,7 @@ if geo is None:
 elif "held" in geo:
     counted = geo["held"] + geo["rescale_bytes"] + _clinical.dicom_read_bytes(
         big, ds.file_meta.TransferSyntaxUID, geo["n"], geo["rows"], geo["cols"], geo["dtype"],
-        (geo["slope"], geo["intercept"]))[1]
+        (geo["slope"], geo["intercept"]), _clinical._largest_frame_stream(big, ds, geo["n"]))[1]
 else:  # (before session 56: the frames alone)
     counted = geo["n"] * geo["rows"] * geo["cols"] * geo["dtype"].itemsize
 ds = None
@@ -135,14 +140,14 @@ frames = read(big)
 traced = tracemalloc.get_traced_memory()[1]
 tracemalloc.stop()
 print(json.dumps({"rss": status("VmHWM:") - before, "traced": traced, "counted": counted,
-                  "frame": frames.data[0].nbytes}))
+                  "frame": frames.data.nbytes}))
 """
 
 
-def measure(name: str, size: int, variant: str, tmp: Path, src: str = "", suffix: str = ".dcm") -> dict:
+def measure(name: str, size: int, variant: str, tmp: Path, src: str = "", suffix: str = ".dcm", frames=1) -> dict:
     small, big = tmp / f"small{suffix}", tmp / f"big{suffix}"
-    for path, side in ((small, 64), (big, size)):
-        write(path, name, side, variant) if suffix == ".dcm" else write_file(path, name, side)
+    for path, side, n in ((small, 64, 1), (big, size, frames)):
+        write(path, name, side, variant, n) if suffix == ".dcm" else write_file(path, name, side)
     out = subprocess.run(
         [sys.executable, "-c", _CHILD, str(small), str(big), src], capture_output=True, text=True, check=True
     )
@@ -156,17 +161,18 @@ def main(argv=None) -> None:
     ap.add_argument("--size", type=int, default=2240)
     ap.add_argument("--variant", choices=("plain", "signed", "rescaled"), default="plain")
     ap.add_argument("--only", nargs="*", default=None, help="these syntaxes alone (pydicom.uid names)")
+    ap.add_argument("--frames", type=int, default=1, help="frames in each DICOM (each its own stream)")
     ap.add_argument("--files", action="store_true", help="also the codestreams in files of their own")
     ap.add_argument("--src", default="", help="read with the radiokit package in this folder (git archive of a commit)")
     args = ap.parse_args(argv)
     mib = 2**20
-    print(f"{args.size} x {args.size}, {args.variant}; MiB")
-    print(f"{'syntax':<32} {'file':>6} {'frame':>6} {'traced':>7} {'VmHWM':>7} {'counted':>8} {'counted/peak':>12}")
+    print(f"{args.frames} frame(s) of {args.size} x {args.size}, {args.variant}; MiB")
+    print(f"{'syntax':<32} {'file':>6} {'frames':>6} {'traced':>7} {'VmHWM':>7} {'counted':>8} {'counted/peak':>12}")
     with tempfile.TemporaryDirectory() as tmp:
         jobs = [(name, ".dcm") for name in args.only or SYNTAXES]
         jobs += [(name, suffix) for name, suffix in FILES.items() if args.files]
         for name, suffix in jobs:
-            g = measure(name, args.size, args.variant, Path(tmp), args.src, suffix)
+            g = measure(name, args.size, args.variant, Path(tmp), args.src, suffix, args.frames)
             name = name if suffix == ".dcm" else f"{name} {suffix} file"
             peak = max(g["traced"], g["rss"])
             print(

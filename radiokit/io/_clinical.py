@@ -576,7 +576,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     _check_rescale(path, dtype, slope, intercept)
     if syntax in compressed_syntaxes():  # (a bomb said as one first: no budget given, it may pass a large one's)
         check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
-    held, rescale = _check_dicom_budget(path, syntax, n, rows, cols, dtype, (slope, intercept), budget)
+    held, rescale = _check_dicom_budget(path, ds, syntax, n, rows, cols, dtype, (slope, intercept), budget)
     _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     meta = {
         "n": n,
@@ -611,10 +611,14 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     return ds, geometry, meta
 
 
-def _check_dicom_budget(path, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> tuple[int, int]:
+def _check_dicom_budget(path, ds, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> tuple[int, int]:
     """Refuse a DICOM whose read would hold more than the budget (:func:`dicom_read_bytes`); what
     it holds throughout and a rescaled frame's bytes, for each frame's own check as decoded."""
-    held, work, rescaled = dicom_read_bytes(path, syntax, n, rows, cols, dtype, rescale)
+    from pydicom.uid import RLELossless
+
+    encapsulated = syntax in compressed_syntaxes() or syntax == RLELossless
+    stream = _largest_frame_stream(path, ds, n) if encapsulated else None
+    held, work, rescaled = dicom_read_bytes(path, syntax, n, rows, cols, dtype, rescale, stream)
     check_budget(
         path,
         held + work + rescaled,
@@ -624,11 +628,50 @@ def _check_dicom_budget(path, syntax, n: int, rows: int, cols: int, dtype, resca
     return held, rescaled
 
 
-def dicom_read_bytes(path, syntax, n: int, rows: int, cols: int, dtype, rescale=(1, 0)) -> tuple[int, int, int]:
+def _largest_frame_stream(path, ds, n: int) -> int:
+    """A bound on the largest frame's codestream in an encapsulated pixel element, before any
+    frame is read: the Extended Offset Table's lengths where given; else the fragments' lengths,
+    their item headers walked in the element (pydicom holds it from the open): one fragment a frame, its
+    own; the Basic Offset Table's starts, the spans between them; else all of them (one frame may
+    hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted 6 streams, three
+    times over (it holds three copies of the one it decodes), and a file that fits was refused.
+    A frame's own stream is held to the budget again as it is decoded."""
+    size = os.path.getsize(path)
+    lengths = ds.get("ExtendedOffsetTableLengths")
+    if lengths and len(lengths) >= 8 * n:
+        return min(size, int(np.frombuffer(lengths[: 8 * n], "<u8").max()))
+    value = getattr(ds.get_item("PixelData"), "value", None)  # (pydicom reads an encapsulated element at open)
+    if n == 1 or not isinstance(value, (bytes, bytearray)):
+        return size
+    table, fragments, pos = None, [], 0
+    while pos + 8 <= len(value):
+        group, element, length = struct.unpack_from("<HHI", value, pos)
+        if (group, element) != (0xFFFE, 0xE000) or length == 0xFFFFFFFF:
+            break  # the sequence's delimiter (or damage, refused when that frame is read)
+        if table is None:
+            table = value[pos + 8 : pos + 8 + min(length, 4 * n + 4)]
+        else:
+            fragments.append(length)
+        pos += 8 + length
+    if not fragments:
+        return size
+    if len(fragments) == n:
+        return max(fragments)
+    starts = np.frombuffer(table[: 4 * (len(table) // 4)], "<u4").astype(np.int64) if table else np.array([])
+    if len(starts) == n and np.all(np.diff(starts) > 0):
+        ends = np.append(starts[1:], sum(8 + length for length in fragments))
+        return min(size, int((ends - starts).max()))
+    return min(size, sum(fragments))
+
+
+def dicom_read_bytes(
+    path, syntax, n: int, rows: int, cols: int, dtype, rescale=(1, 0), stream=None
+) -> tuple[int, int, int]:
     """What ``read()`` of a DICOM holds at its peak, in three parts: what it keeps throughout (the
     pixel element's value, which pydicom reads whole at the first frame, and the stack of every
     frame as read), one frame's decoding (bounded before any is read: its codestream by the file's
-    bytes), and a rescaled frame (the Modality LUT's values, beside the stored ones). Why: the
+    bytes, or ``stream``: :func:`_largest_frame_stream`), and a rescaled frame (the Modality LUT's
+    values, beside the stored ones). Why: the
     frames alone were counted, and reading took 2.5 to 6.5 times them (benchmarks/README.md,
     bench_dicom_decode_memory.py; a 2240 x 2240 frame, 9.6 MiB, 25 to 62 MiB)."""
     from pydicom import uid
@@ -637,15 +680,16 @@ def dicom_read_bytes(path, syntax, n: int, rows: int, cols: int, dtype, rescale=
     frame = samples * np.dtype(dtype).itemsize
     out = rescaled_dtype(dtype, *rescale).itemsize * samples
     size = os.path.getsize(path)
+    stream = size if stream is None else stream
     if syntax in compressed_syntaxes():
         element = size
-        work = frame_decode_bytes(syntax_header(syntax, rows, cols, dtype), size)
+        work = frame_decode_bytes(syntax_header(syntax, rows, cols, dtype), stream)
     elif syntax == uid.RLELossless:
         # pydicom's PackBits decoder: the frame's fragments joined and each segment's slice of
         # them (2 x the stream, bounded by the file), its bytearray of the frame and the array
         # made of it (2 frames), a segment decoded (a byte a sample, its bytearray grown by up to
         # an eighth more) and the slice of it put in place (a byte a sample)
-        element, work = size, 2 * size + 2 * frame + samples * 9 // 8 + samples
+        element, work = size, 2 * stream + 2 * frame + samples * 9 // 8 + samples
     elif syntax == uid.DeflatedExplicitVRLittleEndian:
         # the whole dataset inflated into one buffer, which pydicom keeps, and the element copied
         # out of it; then a frame's array
