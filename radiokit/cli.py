@@ -185,6 +185,7 @@ def _clinical_summary(meta: dict) -> dict:
         "photometric": meta.get("photometric_note") or meta.get("photometric"),
         "rescale": f"stored * {r['slope']:g} + {r['intercept']:g} (RescaleSlope/Intercept)" if r else None,
         "pixel_size_from": meta.get("pixel_size_source"),
+        "padding": meta.get("pixel_padding"),
     }
 
 
@@ -348,6 +349,8 @@ def _describe(path, src, every: bool, sample: int) -> dict:
         declared = ends[1] is not None and top == ends[1]
         low = ends[0] if declared and signed else None
         basis = _saturation_basis(bits, signed, declared, scaling, top, stack, src.dtype.itemsize)
+        if basis and (word := src.meta.get("bit_depth_word")):  # a DICOM's BitsStored of its whole word
+            basis = basis.replace("the file declares no bit depth", f"the file declares only its word ({word})")
     if scaling and top is None:
         basis = f"not checked: values scaled ({scaling['text']})"
     for i in picks:

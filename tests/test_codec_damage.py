@@ -221,7 +221,10 @@ def test_a_jpeg_with_fill_bytes_before_its_markers_reads_as_without_them(tmp_pat
 
 def test_the_budget_counts_the_second_decode_of_a_jpeg(tmp_path):
     """:func:`check_coded_data` decodes a JPEG twice and holds both images to compare them (and
-    the padded copy of its stream): a budget that one image fits, and not two, is not enough."""
+    the padded copy of its stream): a budget that one image fits, and not two, is not enough. What
+    the read holds at its peak (session 56, bench_dicom_decode_memory.py: exactly what tracemalloc
+    saw) is the file's bytes and their padded copy, both decodes, the comparison's booleans (a byte
+    a sample: half a 16-bit image) and the frame in its stack: 3.5 images and 2 streams."""
     frame = _frame(shape=(256, 256))
     stream = bytes(JPEGS["ljpeg SV1"](frame))
     path = tmp_path / "twice.jpg"
@@ -229,4 +232,4 @@ def test_the_budget_counts_the_second_decode_of_a_jpeg(tmp_path):
     image = frame.nbytes
     with pytest.raises(FormatError, match=r"twice\.jpg: .*memory budget"):
         read(path, budget=int(1.5 * image)).data  # noqa: B018
-    np.testing.assert_array_equal(read(path, budget=2 * image + 3 * len(stream)).data[0], frame)
+    np.testing.assert_array_equal(read(path, budget=int(3.5 * image) + 3 * len(stream)).data[0], frame)

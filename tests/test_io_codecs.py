@@ -630,3 +630,88 @@ def test_a_reversible_jpeg_2000_cut_to_a_rate_is_not_said_lossless(tmp_path):
     assert "reversible 5/3" in got.meta["compression"]
     assert not got.meta["compression"].endswith(", lossless"), got.meta["compression"]
     assert "does not say" in got.meta["compression"]
+
+
+def _traced_peak(path) -> int:
+    """The most memory Python and numpy held at once while ``read`` took the file (imagecodecs'
+    outputs are numpy arrays, so traced; the codecs' own C buffers are not)."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        _quiet_read(path)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls", "j2k"])
+def test_a_compressed_dicom_s_budget_counts_its_decode_s_working_memory(tmp_path, name):
+    """The budget is charged what reading a compressed DICOM holds at its peak, not the frames alone:
+    the pixel element, the stack, the frame's codestream, its decode (and a JPEG's check decode,
+    OpenJPEG's 32-bit image). A budget 10 % under the traced peak is refused; one 10 % over that
+    peak plus what the C codec holds untraced (OpenJPEG: 4 bytes a sample) reads. (10 %: pydicom's
+    and Python's own allocations beside the pixels.) The frames alone, 2 MiB, were all it counted:
+    a read taking 2.5-6 times that passed a budget just over it."""
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[:1024, :1024]
+    frame = np.clip(2000 + 800 * np.sin(x / 50) * np.cos(y / 70) + rng.normal(0, 30, x.shape), 0, 4095)
+    frames = frame.astype(np.uint16)[None]
+    path = _dicom(tmp_path / f"{name}.dcm", frames, *LOSSLESS[name])
+    peak = _traced_peak(path)
+    assert peak > 2 * frames.nbytes  # (more than the frames: else nothing is measured here)
+    with pytest.raises(FormatError, match=rf"{name}\.dcm: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))
+    untraced = 4 * frames.size if name == "j2k" else 0
+    got = read(path, budget=int(1.1 * (peak + untraced)))
+    np.testing.assert_array_equal(got.data, frames)
+
+
+@pytest.mark.parametrize("name, suffix", [("sv1", ".jpg"), ("jls", ".jls"), ("j2k", ".j2k")])
+def test_a_codestream_file_s_budget_counts_its_read_s_working_memory(tmp_path, name, suffix):
+    """As a DICOM's frames (above), a .jpg, .jls or .j2k file is charged what its read holds: the
+    file's bytes, its decode (a JPEG's check decode, OpenJPEG's image) and the frame read into its
+    stack. The decode and the check alone were counted: 0.4-0.7 of the peak (benchmarks/README.md)."""
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[:1024, :1024]
+    frame = np.clip(2000 + 800 * np.sin(x / 50) * np.cos(y / 70) + rng.normal(0, 30, x.shape), 0, 4095)
+    frame = frame.astype(np.uint16)
+    path = tmp_path / f"{name}{suffix}"
+    path.write_bytes(LOSSLESS[name][1](frame))
+    peak = _traced_peak(path)
+    with pytest.raises(FormatError, match=rf"{name}\{suffix}: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))
+    untraced = 4 * frame.size if name == "j2k" else 0
+    np.testing.assert_array_equal(read(path, budget=int(1.1 * (peak + untraced))).data[0], frame)
+
+
+def test_a_dicom_frame_declaring_tens_of_thousands_of_tiles_is_refused_by_the_budget_before_decoding(tmp_path):
+    """The budget at open counts one tile a frame (a frame's tiles are in its own header, read only
+    at its decode); each frame's header is then held to the budget before its decode. A 4000 x 4000
+    frame in 16 x 16 tiles (62500: 0.6 GiB of OpenJPEG's structures) in a file of a few hundred
+    bytes, under a budget of 256 MiB that its image and OpenJPEG's copy fit (128 MB)."""
+    stream = bytearray(imagecodecs.jpeg2k_encode(np.zeros((16, 16), np.uint16), level=0, codecformat="J2K"))
+    struct.pack_into(">IIIIIIII", stream, 8, 4000, 4000, 0, 0, 16, 16, 0, 0)
+    frames = np.broadcast_to(np.uint16(0), (1, 4000, 4000))  # (its shape: the stream is the frame)
+    path = _dicom(tmp_path / "tiles.dcm", frames, uid.JPEG2000Lossless, lambda f: stream)
+    with pytest.raises(FormatError, match=r"tiles\.dcm: frame 0 \(JPEG 2000.*over the memory budget of 256") as info:
+        read(path, budget="256MiB")
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("name", ["sv1", "jls"])
+def test_a_multi_frame_compressed_dicom_is_charged_its_largest_frame_s_stream_not_the_file(tmp_path, name):
+    """At open, one frame's decode is counted before any is read: its codestream bounded by the
+    file's bytes counted 6 streams where one is decoded at a time (a JPEG holds three copies of
+    it), and a file that fits was refused under a budget 10 % over its peak. The fragments' lengths
+    (item headers, read from the file) bound the largest frame's."""
+    rng = np.random.default_rng(8)
+    y, x = np.mgrid[:512, :512]
+    frames = np.stack(
+        [np.clip(2000 + 800 * np.sin(x / (40 + k)) + rng.normal(0, 30, x.shape), 0, 4095) for k in range(6)]
+    ).astype(np.uint16)
+    path = _dicom(tmp_path / f"{name}.dcm", frames, *LOSSLESS[name])
+    peak = _traced_peak(path)
+    np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data, frames)
+    with pytest.raises(FormatError, match=rf"{name}\.dcm: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))

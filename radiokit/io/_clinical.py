@@ -17,7 +17,14 @@ import numpy as np
 from radiokit._names import shown
 from radiokit.errors import FormatError
 from radiokit.io._budget import check_budget
-from radiokit.io._codecs import check_dicom_proportion, compressed_frame, compressed_syntaxes, say_lossy_dicom
+from radiokit.io._codecs import (
+    check_dicom_proportion,
+    compressed_frame,
+    compressed_syntaxes,
+    frame_decode_bytes,
+    say_lossy_dicom,
+    syntax_header,
+)
 from radiokit.io._experiment import usable_pixel_sizes
 
 
@@ -412,12 +419,49 @@ def _tag_number(path, ds, tag: str, default):
         raise FormatError(path, f"a DICOM file whose {tag} is not a number ({exc})") from None
 
 
+def _check_not_cut(path, ds) -> None:
+    """Refuse, as truncated, a DICOM whose last element (or whose file meta) runs past the file's
+    end. Why: pydicom keeps the elements it read and drops a cut one without a word, and a file
+    cut before its pixel data was called "a report, structured data or a header only". The
+    elements' offsets are pydicom's (read, not yet decoded): an element already decoded, or one
+    of undefined length (a sequence), leaves the end unknown and the file as it was said, as does
+    a deflated dataset (offsets in its inflated bytes)."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    meta = getattr(ds, "file_meta", None) or {}
+    if meta.get("TransferSyntaxUID") == DeflatedExplicitVRLittleEndian:
+        return  # (its elements' offsets are in its inflated bytes, not the file's)
+    size = os.path.getsize(path)
+    group = meta.get("FileMetaInformationGroupLength")
+    ends = [132 + 12 + int(group)] if group is not None and getattr(ds, "preamble", None) is not None else []
+    for tag in ds.keys():
+        item = ds.get_item(tag)
+        tell, length = getattr(item, "value_tell", None), getattr(item, "length", None)
+        if tell is None or length is None or length == 0xFFFFFFFF:
+            return
+        ends.append(tell + length)
+    if ends and max(ends) > size:
+        raise FormatError(
+            path,
+            f"a DICOM file whose elements run to byte {max(ends)} of a {size}-byte file, cut before its pixel data: "
+            "truncated",
+        )
+
+
 def _decodable_syntax(path, ds):
     """The transfer syntax of ``ds``, refused in one line where there are no pixels to decode or
     pydicom cannot decode them alone (:func:`_decodable_syntaxes`)."""
     if "PixelData" not in ds:
         other = [k for k in ("FloatPixelData", "DoubleFloatPixelData") if k in ds]
+        _check_not_cut(path, ds)
         what = f"its pixels are {other[0]}, which radiokit does not read" if other else "it has no pixel data"
+        if not other and "Rows" in ds and "Columns" in ds:
+            # (a cut at an element's boundary leaves a shorter file of whole elements)
+            raise FormatError(
+                path,
+                f"a DICOM file, but {what}, though its header describes a {ds.Rows}x{ds.Columns} image: "
+                "truncated before its pixels, or they were removed",
+            )
         raise FormatError(path, f"a DICOM file, but {what} (a report, structured data or a header only)")
     syntax = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
     if syntax is None:
@@ -521,27 +565,19 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
             path,
             f"a DICOM file whose pixels are {rows}x{cols} of {allocated} bits allocated: not an image radiokit reads",
         )
-    if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
-        raise FormatError(
-            path,
-            f"a {photometric or 'colour'} DICOM image ({samples} samples per pixel): a radiograph is one channel of "
-            "counts (MONOCHROME1 or MONOCHROME2)",
-        )
+    _check_photometric(path, samples, photometric)
+    _check_high_bit(path, ds, stored)
     if "ModalityLUTSequence" in ds:
         raise FormatError(
             path, "a DICOM image with a Modality LUT Sequence (a table, not a slope), which radiokit does not apply"
         )
-    # what the decoder allocates: every frame at once for RLE (pydicom decodes a frame at a
-    # time only where it can index one: both do here, but the stack is what read() holds)
     dtype = np.dtype(f"{'i' if signed else 'u'}{allocated // 8}")
-    check_budget(path, n * rows * cols * dtype.itemsize, f"its header's {n} frame(s) of {rows}x{cols} {dtype}", budget)
-    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
-    if syntax in compressed_syntaxes():
-        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
-    slope, intercept = (
-        _tag_number(path, ds, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
-    )
+    slope, intercept, rescale_type = _modality_lut(path, ds)
     _check_rescale(path, dtype, slope, intercept)
+    if syntax in compressed_syntaxes():  # (a bomb said as one first: no budget given, it may pass a large one's)
+        check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
+    held, rescale = _check_dicom_budget(path, ds, syntax, n, rows, cols, dtype, (slope, intercept), budget)
+    _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     meta = {
         "n": n,
         "rows": rows,
@@ -559,17 +595,198 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
         meta["dicom_rescale"] = {
             "slope": slope,
             "intercept": intercept,
-            "type": str(ds.get("RescaleType", "")) or None,
+            "type": rescale_type,
         }
         meta["stored_dtype"] = str(dtype)
     if photometric == "MONOCHROME1":
         meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
         _say_inverted(path)
+    if (padding := _padding_note(ds)) is not None:
+        meta["pixel_padding"] = padding
     meta.update(_dicom_pitch(path, ds))
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
+    geometry |= {"held": held, "rescale_bytes": rescale, "budget": budget}  # (a frame's own decode is checked too)
     return ds, geometry, meta
+
+
+def _check_dicom_budget(path, ds, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> tuple[int, int]:
+    """Refuse a DICOM whose read would hold more than the budget (:func:`dicom_read_bytes`); what
+    it holds throughout and a rescaled frame's bytes, for each frame's own check as decoded."""
+    from pydicom.uid import RLELossless
+
+    encapsulated = syntax in compressed_syntaxes() or syntax == RLELossless
+    stream = _largest_frame_stream(path, ds, n) if encapsulated else None
+    held, work, rescaled = dicom_read_bytes(path, syntax, n, rows, cols, dtype, rescale, stream)
+    check_budget(
+        path,
+        held + work + rescaled,
+        f"its header's {n} frame(s) of {rows}x{cols} {dtype}, read with one frame's decoding ({syntax.name})",
+        budget,
+    )
+    return held, rescaled
+
+
+def _largest_frame_stream(path, ds, n: int) -> int:
+    """A bound on the largest frame's codestream in an encapsulated pixel element, before any
+    frame is read: the Extended Offset Table's lengths where given; else the fragments' lengths,
+    their item headers walked in the element (pydicom holds it from the open): one fragment a frame, its
+    own; the Basic Offset Table's starts, the spans between them; else all of them (one frame may
+    hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted 6 streams, three
+    times over (it holds three copies of the one it decodes), and a file that fits was refused.
+    A frame's own stream is held to the budget again as it is decoded."""
+    size = os.path.getsize(path)
+    lengths = ds.get("ExtendedOffsetTableLengths")
+    if lengths and len(lengths) >= 8 * n:
+        return min(size, int(np.frombuffer(lengths[: 8 * n], "<u8").max()))
+    value = getattr(ds.get_item("PixelData"), "value", None)  # (pydicom reads an encapsulated element at open)
+    if n == 1 or not isinstance(value, (bytes, bytearray)):
+        return size
+    table, fragments, pos = None, [], 0
+    while pos + 8 <= len(value):
+        group, element, length = struct.unpack_from("<HHI", value, pos)
+        if (group, element) != (0xFFFE, 0xE000) or length == 0xFFFFFFFF:
+            break  # the sequence's delimiter (or damage, refused when that frame is read)
+        if table is None:
+            table = value[pos + 8 : pos + 8 + min(length, 4 * n + 4)]
+        else:
+            fragments.append(length)
+        pos += 8 + length
+    if not fragments:
+        return size
+    if len(fragments) == n:
+        return max(fragments)
+    starts = np.frombuffer(table[: 4 * (len(table) // 4)], "<u4").astype(np.int64) if table else np.array([])
+    if len(starts) == n and np.all(np.diff(starts) > 0):
+        ends = np.append(starts[1:], sum(8 + length for length in fragments))
+        return min(size, int((ends - starts).max()))
+    return min(size, sum(fragments))
+
+
+def dicom_read_bytes(
+    path, syntax, n: int, rows: int, cols: int, dtype, rescale=(1, 0), stream=None
+) -> tuple[int, int, int]:
+    """What ``read()`` of a DICOM holds at its peak, in three parts: what it keeps throughout (the
+    pixel element's value, which pydicom reads whole at the first frame, and the stack of every
+    frame as read), one frame's decoding (bounded before any is read: its codestream by the file's
+    bytes, or ``stream``: :func:`_largest_frame_stream`), and a rescaled frame (the Modality LUT's
+    values, beside the stored ones). Why: the
+    frames alone were counted, and reading took 2.5 to 6.5 times them (benchmarks/README.md,
+    bench_dicom_decode_memory.py; a 2240 x 2240 frame, 9.6 MiB, 25 to 62 MiB)."""
+    from pydicom import uid
+
+    samples = rows * cols
+    frame = samples * np.dtype(dtype).itemsize
+    out = rescaled_dtype(dtype, *rescale).itemsize * samples
+    size = os.path.getsize(path)
+    stream = size if stream is None else stream
+    if syntax in compressed_syntaxes():
+        element = size
+        work = frame_decode_bytes(syntax_header(syntax, rows, cols, dtype), stream)
+    elif syntax == uid.RLELossless:
+        # pydicom's PackBits decoder: the frame's fragments joined and each segment's slice of
+        # them (2 x the stream, bounded by the file), its bytearray of the frame and the array
+        # made of it (2 frames), a segment decoded (a byte a sample, its bytearray grown by up to
+        # an eighth more) and the slice of it put in place (a byte a sample)
+        element, work = size, 2 * stream + 2 * frame + samples * 9 // 8 + samples
+    elif syntax == uid.DeflatedExplicitVRLittleEndian:
+        # the whole dataset inflated into one buffer, which pydicom keeps, and the element copied
+        # out of it; then a frame's array
+        element, work = 2 * n * frame, frame
+    else:
+        element, work = n * frame, frame  # the element, and the frame's array copied out of it
+    rescaled = out if tuple(rescale) != (1, 0) else 0
+    return element + n * out, work, rescaled
+
+
+def _lut_of(path, item) -> tuple:
+    """``item``'s RescaleSlope, RescaleIntercept (1 and 0 where absent) and RescaleType (None)."""
+    slope, intercept = (
+        _tag_number(path, item, tag, default) for tag, default in (("RescaleSlope", 1), ("RescaleIntercept", 0))
+    )
+    return slope, intercept, str(item.get("RescaleType", "")) or None
+
+
+def _modality_lut(path, ds) -> tuple:
+    """The Modality LUT's slope, intercept and type: at the top level, else where an enhanced
+    multi-frame image keeps it, in its functional groups' Pixel Value Transformation (shared, or
+    the same in every frame's). Why: pydicom's apply_modality_lut reads the top level alone, and
+    an enhanced image's stored values read as its values without a word. One stack has one
+    scale: frames whose transformations differ are refused."""
+    if "RescaleSlope" in ds or "RescaleIntercept" in ds:
+        return _lut_of(path, ds)
+
+    def transformation(group):
+        sequence = group.get("PixelValueTransformationSequence") if group is not None else None
+        return sequence[0] if sequence else None
+
+    shared = ds.get("SharedFunctionalGroupsSequence")
+    if (found := transformation(shared[0] if shared else None)) is not None:
+        return _lut_of(path, found)
+    frames = ds.get("PerFrameFunctionalGroupsSequence") or []
+    luts = {_lut_of(path, lut) if (lut := transformation(group)) is not None else (1, 0, None) for group in frames}
+    if len(luts) > 1:
+        shown = ", ".join(f"{s:g} x + {b:g}" for s, b, _ in sorted(luts, key=lambda t: t[:2])[:4])
+        raise FormatError(
+            path,
+            f"an enhanced DICOM image whose frames' RescaleSlope/RescaleIntercept differ ({shown}): one stack of "
+            "frames has one scale; split it into one file per scale",
+        )
+    return luts.pop() if luts else (1, 0, None)
+
+
+def _padding_note(ds) -> str | None:
+    """What a PixelPaddingValue (to PixelPaddingRangeLimit) says, for ``info``: those pixels hold
+    no image (outside the collimated field), though they are read as stored, as pydicom reads
+    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so."""
+    value = ds.get("PixelPaddingValue")
+    if value is None or value == "":
+        return None
+    limit = ds.get("PixelPaddingRangeLimit")
+    ranged = limit not in (None, "")
+    span = f"PixelPaddingValue {value}" + (f" to {limit}" if ranged else "")
+    return (
+        f"{span}: pixels of {'those values' if ranged else 'that value'} hold no image (outside the collimated "
+        "field); read as stored, and counted in the range and saturation above"
+    )
+
+
+def _check_photometric(path, samples: int, photometric: str) -> None:
+    """Refuse an image that is not one channel of counts whose meaning (lowest value black or white) is said."""
+    if samples == 1 and not photometric:  # (type 1: a writer left it blank)
+        raise FormatError(
+            path,
+            "a DICOM image of one sample a pixel with no PhotometricInterpretation: whether its lowest value shows "
+            "black (MONOCHROME2) or white (MONOCHROME1) is not said; set it (pydicom: ds.PhotometricInterpretation)",
+        )
+    if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
+        raise FormatError(
+            path,
+            f"a {photometric or 'colour'} DICOM image ({samples} samples per pixel): a radiograph is one channel of "
+            "counts (MONOCHROME1 or MONOCHROME2)",
+        )
+
+
+def _check_high_bit(path, ds, stored: int) -> None:
+    """Refuse counts that are not the low BitsStored bits of their word (HighBit other than
+    BitsStored - 1: ACR-NEMA's layout, which the DX, CR and most image IODs forbid). Why: pydicom
+    reads the low BitsStored bits whatever HighBit says, and a 12-bit count in a word's top bits
+    read as (count << 4) & 0xFFF, every value wrong, without a word."""
+    value = ds.get("HighBit")
+    if value in (None, "") or int(value) == stored - 1:
+        return
+    high = int(value)
+    advice = (
+        f"shift each word right by {high + 1 - stored} bits and set HighBit {stored - 1}"
+        if high >= stored
+        else "a HighBit below them is no layout: its header is wrong"
+    )
+    raise FormatError(
+        path,
+        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts are not the low bits "
+        f"of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
+    )
 
 
 def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
@@ -581,7 +798,9 @@ def _bit_depth_meta(stored: int, allocated: int, signed: bool) -> dict:
         return {"bit_depth": stored, "bit_depth_signed": True}
     if stored < allocated:
         return {"bit_depth": stored}  # the saturation judgement's top, as a TIFF's BitsPerSample below its word
-    return {}
+    # stated, but of the whole word (writers state 16 of 12- and 14-bit panels): the level is
+    # judged from the values as a TIFF's, and info says what the file did state
+    return {"bit_depth_word": f"BitsStored {stored} of BitsAllocated {allocated}"} if allocated > 8 else {}
 
 
 def _check_pixel_length(path, ds, syntax, n: int, frame: int) -> None:
@@ -719,4 +938,7 @@ def rescaled(stored: np.ndarray, slope, intercept) -> np.ndarray:
     out = rescaled_dtype(stored.dtype, slope, intercept)
     if out == stored.dtype:
         return stored
-    return stored.astype(out) * out.type(slope) + out.type(intercept)
+    values = stored.astype(out)  # in place from here: one frame of the values beside the stored (the budget's)
+    values *= out.type(slope)
+    values += out.type(intercept)
+    return values

@@ -404,6 +404,44 @@ def check_bytes(header: dict, stored: int) -> int:
     return samples * out_dtype(header).itemsize + 2 * stored
 
 
+def frame_decode_bytes(header: dict, stored: int) -> int:
+    """What decoding one codestream of ``stored`` bytes holds at its peak (:func:`compressed_frame`):
+    the stream, its decode (:func:`decoded_bytes`: the image, OpenJPEG's 32-bit copy, a progressive
+    JPEG's coefficients), and for a JPEG the coded-data check (:func:`check_coded_data`): first the
+    padded stream's pieces and their join (2 x ``stored``) beside the image, then the join, a second
+    decode and the two images compared (a byte a sample). benchmarks/README.md
+    (bench_dicom_decode_memory.py) has them measured against this."""
+    decoded = decoded_bytes(header)
+    if not check_bytes(header, stored):
+        return stored + decoded
+    samples = header["width"] * header["height"] * header["components"]
+    image = samples * out_dtype(header).itemsize
+    return stored + image + max(2 * stored, stored + decoded + samples)
+
+
+def file_read_bytes(header: dict, stored: int) -> int:
+    """What reading a codestream file of ``stored`` bytes holds at its peak: its bytes read whole,
+    their decode (:func:`frame_decode_bytes`), and the frame read into its stack."""
+    return frame_decode_bytes(header, stored) + header["width"] * header["height"] * out_dtype(header).itemsize
+
+
+def syntax_header(syntax, rows: int, cols: int, dtype) -> dict:
+    """The header a compressed DICOM's frames may have, before any is read, for the budget: its
+    syntax's codec, the DICOM's image, samples as wide as BitsAllocated (a frame's own are held
+    to it: :func:`_check_frame_header`), one tile; a DCT syntax's stream taken as progressive (its
+    coefficients held: no syntax stops a writer's)."""
+    name = syntax.name
+    codec = "jpegls" if "JPEG-LS" in name else "jpeg2k" if ("2000" in name or "HTJ2K" in name) else "jpeg"
+    lossless = compressed_syntaxes().get(syntax) is not True
+    process = "lossless" if lossless and codec == "jpeg" else "progressive" if codec == "jpeg" else ""
+    precision = np.dtype(dtype).itemsize * 8
+    return {"codec": codec, "process": process, "width": cols, "height": rows, "components": 1} | {
+        "precision": precision,
+        "signed": False,
+        "tiles": 1,
+    }
+
+
 def check_file_header(path, header: dict, budget) -> None:
     """Refuse, before decoding, a file declaring more than the budget, a colour space of neither
     one nor three components, or samples over 16 bits."""
@@ -414,10 +452,8 @@ def check_file_header(path, header: dict, budget) -> None:
         )
     what, decoded = f"its header's {w}x{h} {p}-bit image of {c} component(s)", decoded_bytes(header)
     stored = os.path.getsize(path)
-    extra = check_bytes(header, stored)
-    check_budget(
-        path, decoded + extra, what + (", decoded twice (the second checks its coded data)" if extra else ""), budget
-    )
+    twice = ", decoded twice (the second checks its coded data)" if check_bytes(header, stored) else ""
+    check_budget(path, file_read_bytes(header, stored), f"{what}{twice}, read", budget)
     # (the budget is a fraction of the machine: a 4 KB JPEG declaring 60000 x 60000 fits a large one's)
     codec = "JPEG 2000" if header["codec"] == "jpeg2k" else "JPEG"
     check_proportion(path, what, decoded, decoded, stored, codec, budget)
@@ -556,6 +592,13 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     except (ValueError, IndexError) as exc:
         raise FormatError(path, f"frame {i}'s codestream header cannot be read ({exc}): corrupt") from None
     _check_frame_header(path, header, geometry, i)
+    # its own header's decode (a JPEG 2000's tiles, unknown at open) beside what read() holds
+    check_budget(
+        path,
+        geometry["held"] + frame_decode_bytes(header, len(buf)) + geometry["rescale_bytes"],
+        f"frame {i} ({describe(header)}, {len(buf)} bytes), decoded beside the frames read",
+        geometry["budget"],
+    )
     check_complete(path, buf, header, f"frame {i} is ")
     if (count := codestreams(buf, header)) > 1:
         # frames one fragment each under a NumberOfFrames absent or too small: pydicom joins
@@ -581,10 +624,15 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
         # uint16 words at 16 bits): the unused bits above it are undefined (PS3.5 8.1.1), zero
         # for some writers, and pydicom reads such words uncompressed from BitsStored too
         bits = min(header["precision"], int(ds.get("BitsStored", 0) or 0) or header["precision"])
-        top = 1 << (bits - 1)
-        data = ((data.astype(np.int64) & ((1 << bits) - 1)) ^ top) - top
+        # in place, in the decoded words: BitsStored's top bit shifted to the word's, then an
+        # arithmetic shift back (int64 copies held 3 x 8 bytes a sample, beside the budget's count)
+        shift = data.dtype.itemsize * 8 - bits
+        data <<= shift
+        data = data.view(data.dtype.str.replace("u", "i"))
+        data >>= shift
     elif dtype.kind == "u" and data.dtype.kind == "i":
         # a JPEG 2000 whose SIZ says signed over unsigned counts (a writer's mislabel): its bits
         # are the counts, as pydicom reads them, not int16 values wrapped to 65000s
-        data = data.astype(np.int64) & ((1 << header["precision"]) - 1)
+        data = data.view(data.dtype.str.replace("i", "u"))
+        data &= (1 << header["precision"]) - 1
     return data.astype(dtype, copy=False)

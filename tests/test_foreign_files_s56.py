@@ -1,0 +1,175 @@
+"""Files from writers radiokit had not met (session 56's foreign-file trial): valid DICOM, TIFF,
+PNG and HDF5 made by pydicom, tifffile, OpenCV and h5py with unusual attributes read with the
+values their own libraries give, and what radiokit cannot read is one line naming the real cause."""
+
+import numpy as np
+import pytest
+
+from radiokit.io import FormatError, read
+from tests.conftest import run_cli
+
+
+def _counts(shape=(40, 50), bits=12, seed=56):
+    return np.random.default_rng(seed).integers(0, 1 << bits, size=shape, dtype=np.uint16)
+
+
+def _dx(path, words, *, bits_stored=12, high_bit=None, photometric="MONOCHROME2", **attrs):
+    """A DX DICOM of 16-bit ``words`` as pydicom writes one."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1"  # DX for presentation
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "DX"
+    ds.Rows, ds.Columns = words.shape
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, photometric
+    ds.BitsAllocated, ds.BitsStored, ds.PixelRepresentation = 16, bits_stored, 0
+    ds.HighBit = bits_stored - 1 if high_bit is None else high_bit
+    for name, value in attrs.items():
+        setattr(ds, name, value)
+    ds.PixelData = words.astype("<u2").tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_counts_stored_in_the_top_bits_of_their_word_are_refused_not_misread(tmp_path):
+    """HighBit 15 with BitsStored 12: the counts are the word's top 12 bits (ACR-NEMA's layout, which
+    DX and CR forbid: HighBit = BitsStored - 1). pydicom masks the low 12 bits, and radiokit read
+    them as counts: every value wrong (word & 0xFFF is (count << 4) & 0xFFF), without a word."""
+    counts = _counts()
+    path = _dx(tmp_path / "top.dcm", counts << 4, high_bit=15)
+    with pytest.raises(FormatError, match=r"top\.dcm: .*HighBit 15.*BitsStored 12") as info:
+        read(path)
+    assert "\n" not in str(info.value)
+    # the layout every writer uses still reads, every count as written
+    np.testing.assert_array_equal(read(_dx(tmp_path / "low.dcm", counts)).data[0], counts)
+
+
+def test_a_dicom_cut_before_its_pixel_data_is_said_to_be_truncated(tmp_path, capfd):
+    """A DICOM cut inside its header: pydicom keeps what it read and drops the cut element without
+    a word, and radiokit called the file "a report, structured data or a header only". Its last
+    element (or its file meta) runs past the file's end: truncated. Cut at an element's boundary
+    (30 bytes before the pixels: three 10-byte elements) it is whole elements, and its header's
+    image without pixels is said."""
+    whole = _dx(tmp_path / "whole.dcm", _counts()).read_bytes()
+    pixel_data = whole.rindex(b"\xe0\x7f\x10\x00")  # (7FE0,0010)'s tag, the pixels' element
+    for cut in (300, pixel_data - 25, pixel_data - 30):
+        path = tmp_path / f"cut{cut}.dcm"
+        path.write_bytes(whole[:cut])
+        res = run_cli("info", path)
+        assert res.returncode == 2
+        err = res.stderr.strip()
+        assert f"cut{cut}.dcm" in err and "truncated" in err and "report" not in err, err
+        assert len(err.splitlines()) == 1, err
+    # a whole file without pixels is still what it was said to be
+    from pydicom import dcmread
+
+    ds = dcmread(tmp_path / "whole.dcm")
+    del ds.PixelData
+    ds.save_as(tmp_path / "header.dcm")
+    with pytest.raises(FormatError, match=r"header\.dcm: a DICOM file, but it has no pixel data, though its header"):
+        read(tmp_path / "header.dcm")
+
+
+def test_a_dicom_without_a_photometric_interpretation_is_not_called_colour(tmp_path):
+    """One sample a pixel and PhotometricInterpretation empty (a type-1 attribute a writer left
+    blank): it was refused as "a colour DICOM image (1 samples per pixel)"."""
+    path = _dx(tmp_path / "blank.dcm", _counts(), photometric="")
+    with pytest.raises(FormatError, match=r"blank\.dcm: .*no PhotometricInterpretation") as info:
+        read(path)
+    assert "colour" not in str(info.value)
+
+
+def _functional_groups(path, slopes, intercepts, shared: bool):
+    """``path``'s dataset with its Modality LUT where an enhanced multi-frame image keeps it: a
+    Pixel Value Transformation in the shared functional groups, or one a frame, none at the top."""
+    from pydicom import dcmread
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    def group(slope, intercept):
+        lut = Dataset()
+        lut.RescaleSlope, lut.RescaleIntercept, lut.RescaleType = str(slope), str(intercept), "US"
+        item = Dataset()
+        item.PixelValueTransformationSequence = Sequence([lut])
+        return item
+
+    ds = dcmread(path)
+    if shared:
+        ds.SharedFunctionalGroupsSequence = Sequence([group(slopes[0], intercepts[0])])
+    else:
+        ds.PerFrameFunctionalGroupsSequence = Sequence([group(s, b) for s, b in zip(slopes, intercepts)])
+    ds.save_as(path)
+    return path
+
+
+def test_an_enhanced_image_s_modality_lut_in_its_functional_groups_is_applied(tmp_path):
+    """An enhanced multi-frame image keeps RescaleSlope/Intercept in its functional groups, not at
+    the top level: they were ignored (as pydicom's apply_modality_lut ignores them), and the stored
+    values read as the image's, without a word. Shared, or the same for every frame, they are
+    applied as a top-level one is; differing by frame, refused (one stack has one scale)."""
+    counts = _counts((3, 40, 50))
+    one = _dx(tmp_path / "multi.dcm", counts.reshape(-1, 50), bits_stored=12)
+    from pydicom import dcmread
+
+    ds = dcmread(one)
+    ds.Rows, ds.NumberOfFrames = 40, 3
+    ds.save_as(one)
+    shared = _functional_groups(one, [0.5], [-100], shared=True)
+    np.testing.assert_allclose(read(shared).data, counts * 0.5 - 100, rtol=0, atol=0)
+    same = _dx(tmp_path / "same.dcm", counts.reshape(-1, 50))
+    ds = dcmread(same)
+    ds.Rows, ds.NumberOfFrames = 40, 3
+    ds.save_as(same)
+    _functional_groups(same, [2, 2, 2], [-7, -7, -7], shared=False)
+    np.testing.assert_array_equal(read(same).data, counts.astype(np.int64) * 2 - 7)
+    _functional_groups(same, [1, 2, 3], [0, 0, 0], shared=False)
+    with pytest.raises(FormatError, match=r"same\.dcm: .*RescaleSlope.*differ") as info:
+        read(same)
+    assert "\n" not in str(info.value)
+
+
+def test_info_says_which_pixels_a_dicom_pads(tmp_path):
+    """PixelPaddingValue marks pixels holding no image (outside the collimated field); a DX writer
+    pads a 12-bit image with 4095, which info counted as saturated without a word of why. The
+    pixels are read as stored (pydicom's values), and info now names the padding."""
+    counts = _counts() % 4000
+    counts[:5] = 4095  # the padded band
+    path = _dx(tmp_path / "padded.dcm", counts, PixelPaddingValue=4095)
+    np.testing.assert_array_equal(read(path).data[0], counts)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    rows = {line.split()[0]: line for line in res.stdout.splitlines()[1:] if line.strip()}
+    assert f"{counts[:5].size} pixel(s) >= 4095" in rows["saturated"], res.stdout
+    assert "PixelPaddingValue 4095" in rows["padding"] and "no image" in rows["padding"], res.stdout
+
+
+def test_a_whole_deflated_dicom_without_pixels_is_not_called_truncated(tmp_path):
+    """A deflated dataset's element offsets are in its inflated bytes, past the (smaller) file's
+    end: they say nothing of the file being cut."""
+    from pydicom import dcmread
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    ds = dcmread(_dx(tmp_path / "whole.dcm", _counts()))
+    del ds.PixelData
+    ds.ImageComments = "a comment that deflates well " * 30  # (under 1 KB: read, not deferred)
+    ds.file_meta.TransferSyntaxUID = DeflatedExplicitVRLittleEndian
+    ds.save_as(tmp_path / "deflated.dcm")
+    with pytest.raises(FormatError, match=r"deflated\.dcm: a DICOM file, but it has no pixel data") as info:
+        read(tmp_path / "deflated.dcm")
+    assert "run to byte" not in str(info.value)
+
+
+def test_info_does_not_say_a_dicom_of_16_bits_stored_declares_no_depth(tmp_path):
+    """BitsStored 16 of BitsAllocated 16 is a DICOM's statement (as a TIFF's BitsPerSample 16, the
+    word, is not); the level is still judged from the values (writers state 16 of 12- and 14-bit
+    panels), but info said "the file declares no bit depth" of it."""
+    path = _dx(tmp_path / "word.dcm", _counts(), bits_stored=16)
+    res = run_cli("info", path)
+    assert res.returncode == 0, res.stderr
+    row = next(line for line in res.stdout.splitlines() if line.strip().startswith("saturated"))
+    assert "declares no bit depth" not in row and "BitsStored 16" in row, row
