@@ -136,6 +136,7 @@ def test_a_stop_while_a_reply_is_held_back_switches_off_promptly(sigint_default)
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
+        src._transport.late_barriers = ()  # the hold, as when the barrier query goes unanswered
         try:
             model.left_on()
             model.silence(True, execute=True)
@@ -173,6 +174,7 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
+        src._transport.late_barriers = ()  # the hold, as when the barrier query goes unanswered
         try:
             _sts_owed_then_left_on(model, src)
             n = len(model.log)
@@ -303,5 +305,72 @@ def test_a_reply_later_than_its_window_is_not_read_as_the_resent_querys():
             time.sleep(max(0.0, t0 + 3 * TIMEOUT_S - time.monotonic()))
             assert src.status() == SourceState.XRAY_ON
             assert src.status() == SourceState.XRAY_ON
+        finally:
+            src.close()
+
+
+def test_a_stop_during_the_barrier_query_leaves_its_reply_to_the_grammar(sigint_default):
+    """A stop (SIGINT) lands while the transport reads the reply to the barrier query it sent
+    before a resent ``STS`` (one ``STS`` never answered, the tube left on). The switch-off's
+    ``XOF`` goes out at once, the barrier's reply coming during its read is discarded (it is no
+    echo of ``XOF``), and the switch-off is confirmed only by an ``STS`` asked after the ``XOF``."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.left_on()
+            model.silence(True, execute=True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            model.slow(LATENCY_S / 2)  # the barrier's reply still on its way when the stop comes
+            n = len(model.log)
+
+            def stop_in_the_barrier():
+                while not model.log[n:]:
+                    time.sleep(0.002)
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_in_the_barrier, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)
+            watcher.join(timeout=2)
+            assert model.log[n].command != "STS"  # the barrier, not the STS, was in flight
+            assert src.off().confirms_off and not model.xray_on
+            after = [(e.command, e.reply) for e in model.log[n + 1 :]]
+            assert after[0] == ("XOF", "XOF"), after
+            assert all(c == "STS" for c, _ in after[1:]) and after[-1][1] != "XON", after
+        finally:
+            model.slow(0)
+            src.close()
+
+
+def test_a_state_from_before_the_tube_went_on_is_never_read_however_late_it_comes():
+    """The limit, shown: L8121.md bounds no reply's lateness. One ``STS`` is answered eight
+    time-outs late, the controller answering nothing else meanwhile (in order: every command
+    sent behind it waits), and the tube is switched on just after that ``STS`` was asked. A status
+    loop keeps asking all along: every ``status()`` fails (no reply) until the controller answers
+    again, and none reads the ``STANDBY`` from before the tube went on -- it comes while a
+    question of the ``STS`` word is still unanswered, whatever its age, and that is cleared only
+    by a reply that comes after it. Then the loop reads the tube on."""
+    timeout_s = 0.1
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", poll_s=0.05, min_interval_s=0.02, timeout_s=timeout_s)
+        try:
+            model.delay_once(8 * timeout_s, "STS")
+            t0, read = time.monotonic(), []
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            while time.monotonic() < t0 + 12 * timeout_s and read[-2:] != [SourceState.XRAY_ON] * 2:
+                try:
+                    read.append(src.status())
+                except DeviceError as exc:
+                    read.append(str(exc).split(": ", 1)[-1][:40])
+            assert SourceState.STANDBY not in read, read
+            assert read[-2:] == [SourceState.XRAY_ON] * 2, read
         finally:
             src.close()
