@@ -1912,6 +1912,8 @@ class L8121:
         re-identify the controller after a reconnect (:class:`Reidentify`, ``on_reconnect``)."""
         if hasattr(transport, "reply_fits"):
             transport.reply_fits = self.dialect.reply_fits
+        if hasattr(transport, "late_barriers"):  # the queries it may send to tell a late reply apart
+            transport.late_barriers = tuple(query.command for query in self.dialect.readings.values())
         # a check already there is kept: the guardian's knows the model its client's connect read
         if hasattr(transport, "on_reconnect") and transport.on_reconnect is None:
             # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one

@@ -68,11 +68,13 @@ def late_reply_wait_s(timeout_s: float) -> float:
 def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
     """One :meth:`SerialTransport.query` at its longest on a link that stays up (a reconnect
     repeats it, after the port's reopening and the identity check): the wait for a late reply after
-    a time-out (:func:`late_reply_wait_s`, its last read a slice past it), the command spacing at
-    its longest (three spacings: bytes restart it for two, on a line that never falls quiet --
-    :meth:`SerialTransport._wait_spacing`), the reply time-out and two read slices past it (the
-    grace for a stalled process, the last read's overrun)."""
-    return late_reply_wait_s(timeout_s) + _READ_SLICE_S + 3 * min_interval_s + timeout_s + 2 * _READ_SLICE_S
+    a time-out (:func:`late_reply_wait_s`, its last read a slice past it) or, in its place, a
+    barrier query (:meth:`SerialTransport._cross`: its spacing, then a reply read as long), the
+    command spacing at its longest (three spacings: bytes restart it for two, on a line that never
+    falls quiet -- :meth:`SerialTransport._wait_spacing`), the reply time-out and two read slices
+    past it (the grace for a stalled process, the last read's overrun)."""
+    barrier = 3 * min_interval_s
+    return barrier + late_reply_wait_s(timeout_s) + _READ_SLICE_S + 3 * min_interval_s + timeout_s + 2 * _READ_SLICE_S
 
 
 def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float) -> float:
@@ -80,7 +82,9 @@ def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float
     exchange at its worst by its own time-outs, a wedged port's included (unlike
     :func:`exchange_longest_s`, a responsive link's): an interrupted exchange's reply awaited up
     to its time-out (``_drain_pending``) and a read slice; the late reply's wait
-    (:func:`late_reply_wait_s`) and a slice; the spacing, three spacings at most (a byte in its
+    (:func:`late_reply_wait_s`) and a slice, or a barrier query in its place (``_cross``: its
+    spacing, its write and drain, each up to ``write_timeout_s``, or its reply read as long as
+    that wait, from its write); the spacing, three spacings at most (a byte in its
     second restarts it, ``_wait_spacing``) and a poll; from the command's start, the reply
     time-out or its three write waits (an earlier command's bytes, its write, its drain, each up
     to ``write_timeout_s``), whichever is longer, and two read slices past it (the stall grace,
@@ -89,7 +93,9 @@ def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float
     return (
         timeout_s
         + _READ_SLICE_S
-        + late_reply_wait_s(timeout_s)
+        + 3 * min_interval_s  # a barrier's spacing (its poll and read slice are counted below)
+        + _SPACING_SLICE_S
+        + max(late_reply_wait_s(timeout_s), 2 * write_timeout_s)
         + _READ_SLICE_S
         + 3 * min_interval_s
         + _SPACING_SLICE_S
@@ -498,6 +504,12 @@ class _StillQueued(serial.SerialTimeoutException):
         self.earlier = list(earlier)
 
 
+class _Undecided(DeviceError):
+    """A reply held back (it fits the command owed a late reply and the one sent now) and then a
+    line that fits neither: which was this command's reply cannot be told, so neither is (not a
+    signal: nothing of this exchange is still on its way)."""
+
+
 def _said(exc: BaseException) -> str:
     """``exc``'s text with its control characters escaped: pyserial's repeats the port's name raw
     (an escape in a name typed for ``--port`` reached the terminal inside the refusal)."""
@@ -621,12 +633,27 @@ class SerialTransport:
         # late reply is no longer waited for: the controller answers in order, so the next lines
         # on the link may be theirs before the reply to the command sent next
         self._owed: list[tuple[str, float]] = []
+        # The words of the commands owed a reply (as _owed), kept past their window: until a reply
+        # shows the controller has answered everything sent before (the controller answers in
+        # order): a reply of its own word read then (_is_late), a barrier's (_cross), or a held
+        # line nothing followed (_read_line). L8121.md bounds no reply's lateness, and a reply four
+        # time-outs late, past its window, was read as the same query's asked again: a STANDBY
+        # from before the tube was switched on (session 56)
+        self._unanswered: list[str] = []
         #: ``reply_fits(command, reply) -> bool``: whether a line can be the reply to ``command`` (a
         #: driver sets its dialect's grammar, :meth:`acquisition.l8121.Dialect.reply_fits`). With
         #: it, after a time-out, a line that does not fit the command just sent is taken for the
         #: late reply of the one that timed out and discarded (once per command owed); without it,
         #: only the flush before each command guards against late replies.
         self.reply_fits = None
+        #: Queries (command words) that change nothing on the instrument, in order of preference,
+        #: which the transport may send on its own as a *barrier*: before a query of a word still
+        #: owed a reply (:meth:`_cross`), and only before a query of one of these words. Its reply,
+        #: read and told apart by :attr:`reply_fits`, shows that every reply owed before it has
+        #: come or never will (the controller answers in order), so the query's own reply cannot
+        #: be taken for the late one -- at the cost of one short exchange, not of a reply time-out
+        #: spent waiting for a second line. Empty (the default): no barrier, the hold alone.
+        self.late_barriers: tuple[str, ...] = ()
         #: ``on_reconnect(ask)``: run right after the port was opened again (a reconnect within
         #: :meth:`query`, a query on a link closed since it was first opened, or an explicit
         #: :meth:`open` of such a link), before any command is sent. ``ask(command) -> reply`` is one exchange on the new link. It raises
@@ -758,7 +785,7 @@ class SerialTransport:
             # for a time-out from a late reopen instead, a reply that fits any command (ERROR)
             # kept the next command waiting that long for a second line (review s29-h4)
             if self._pending[1] > time.monotonic():
-                self._owed.append(self._pending)
+                self._owe(*self._pending)
             self._pending = None
         # self._owed is kept: the same controller behind the port (a brief read error, a re-plugged
         # adapter, a terminal server) still answers the commands the old link wrote, and a reply
@@ -1196,17 +1223,22 @@ class SerialTransport:
 
     def _ask(self, command: str) -> str:
         """One exchange for :attr:`on_reconnect`, within the query or :meth:`open` that reconnected
-        (its lock held)."""
-        return self._exchange(command, self._payload(command))
+        (its lock held). No barrier (:meth:`_cross`): nothing but the check goes to a device not
+        yet checked -- a query of the controller's may be a command to another instrument."""
+        return self._exchange(command, self._payload(command), barrier_ok=False)
 
     def _payload(self, command: str) -> bytes:
         """The bytes of ``command`` on the wire (its terminator added)."""
         return (command + self.terminator).encode("ascii")
 
-    def _exchange(self, command: str, payload: bytes) -> str:
+    def _exchange(self, command: str, payload: bytes, *, barrier_ok: bool = True) -> str:
         ser = self._serial
         self._drain_pending()
-        self._await_late_reply()
+        barrier = self._barrier_for(command) if barrier_ok else None
+        if barrier is None:
+            self._await_late_reply()
+        else:  # its exchange is the wait for a late reply, and more: an answer to "is it over?"
+            self._cross(ser, barrier)
         self._wait_spacing(ser)
         self._flush_late(ser)  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
@@ -1240,9 +1272,9 @@ class SerialTransport:
                 # on the reopened port, before the reply to the reconnect check: owed for one more
                 # reply time-out from now (not from the send: the wait's last slice and a stall
                 # before the next command ate into a window counted from there)
-                self._owed.append((command, time.monotonic() + self.timeout_s))
+                self._owe(command, time.monotonic() + self.timeout_s)
             self._timed_out = isinstance(exc, NoReply)
-            if not isinstance(exc, (NoReply, *_LINK_ERRORS)):
+            if not isinstance(exc, (NoReply, _Undecided, *_LINK_ERRORS)):
                 # a signal (Ctrl-C, a StopSignal) cut the wait short: the reply is still on its way
                 self._pending = (command, t0 + self.timeout_s)
                 self.log.debug(
@@ -1417,14 +1449,124 @@ class SerialTransport:
         "unexpected" or "unparseable") -- swallowed, it would read as a silent controller, which a
         switch-off stops retrying."""
         self._forget_overdue()
-        if not self._owed or self.reply_fits is None or self.reply_fits(command, text):
-            self._owed.clear()  # the controller answers in order: what was owed before is not coming
+        if self.reply_fits is not None and self.reply_fits(command, text):
+            self._answered()  # the controller answers in order: what was owed before is not coming
             return False
-        if not self.reply_fits(self._owed[0][0], text):
+        if not self._owed or self.reply_fits is None:
+            self._owed.clear()
             return False
-        late = self._owed.pop(0)[0]
+        late = self._drop_owed_to(text)
+        if late is None:
+            return False
         self.log.debug("%s < %s (late reply to %s, not %s's: discarded)", shown_name(self.url), text, late, command)
         return True
+
+    def _owe(self, command: str, until: float) -> None:
+        """``command``'s reply was not read: owed until ``until`` (:attr:`_owed`), and its word
+        unanswered until a reply shows the controller has caught up (:attr:`_unanswered`)."""
+        self._owed.append((command, until))
+        word = command.split(" ", 1)[0]
+        if word in self._unanswered:
+            self._unanswered.remove(word)
+        self._unanswered.append(word)  # the last: the most recent
+
+    def _answered(self) -> None:
+        """A reply shows that the controller has answered everything sent before it."""
+        self._owed.clear()
+        self._unanswered.clear()
+
+    def _drop_owed_to(self, text: str) -> str | None:
+        """``text`` is the late reply of the first owed command it fits: that one and those owed
+        before it are no longer owed (answered in order: theirs came, or will not come), and
+        its command is returned; None when it fits none (nothing dropped)."""
+        for i, (owed, _) in enumerate(self._owed):
+            if self.reply_fits(owed, text):
+                del self._owed[: i + 1]
+                return owed
+        return None
+
+    def _barrier_for(self, command: str) -> str | None:
+        """The barrier query to send before ``command`` (:meth:`_cross`), or None: ``command`` is
+        one of :attr:`late_barriers` (a query) and the last command left unanswered was of its
+        word (a poll or status loop asking again), so its own reply and the late one would read
+        alike; the barrier is the first of the others not owed a reply either. Not after a
+        command of another word went unanswered since (a switch-off's ``XOF`` to a silent
+        controller): one more query into the silence, its ``STS`` then is held as before. None
+        too while earlier bytes may still be queued (a drain that timed out): the command then
+        waits for them, or is not sent."""
+        word = command.split(" ", 1)[0]
+        if self.reply_fits is None or word not in self.late_barriers or self._unanswered[-1:] != [word]:
+            return None
+        if self._undrained:
+            return None
+        avoid = {word, *self._unanswered, *(c.split(" ", 1)[0] for c, _ in self._owed)}
+        return next((b for b in self.late_barriers if b not in avoid), None)
+
+    def _cross(self, ser, barrier: str) -> None:
+        """Send ``barrier`` before a query whose word is still owed a reply, and read its reply
+        (up to :func:`late_reply_wait_s`): the controller answers in order, so once a line that
+        can only be the barrier's has come, every reply owed before it has come or never will,
+        and the query that follows reads its own -- however late the owed one was (L8121.md
+        bounds no reply's lateness). Lines before it that fit an owed command and not the barrier
+        are the late replies (discarded); a line that fits both (``ERROR``) or neither (noise)
+        decides nothing. Without it the query's reply, fitting both, was held a reply time-out
+        for a second line when the owed reply never came (``status()`` 0.10 -> 0.42 s at a
+        0.25 s time-out, 2.6 s at the dialects' 2 s). A barrier not answered in time is owed in
+        turn, and the query goes out to the hold (:meth:`_read_line`), as without one. It stands
+        in for :meth:`_await_late_reply` (a late reply that comes is read and discarded here)."""
+        self._wait_spacing(ser)
+        self._flush_late(ser)
+        self._timed_out = False  # this exchange is the wait for a late reply
+        t0 = time.monotonic()
+        deadline = t0 + late_reply_wait_s(self.timeout_s)
+        buf = self._rx = bytearray()
+        self.log.debug("%s > %s (barrier: a reply to %s is owed)", shown_name(self.url), barrier, self._unanswered)
+        self.commands_written += 1
+        self._undrained.append(barrier)
+        try:
+            try:
+                self._write(ser, barrier, self._payload(barrier))
+                self._drain(ser, barrier)
+            except serial.SerialTimeoutException:
+                raise _StillQueued([barrier]) from None  # the query is not written behind it
+            self._undrained.clear()
+            while True:
+                lines = re.split(rb"[\r\n]", bytes(buf))
+                buf = self._rx = bytearray(lines[-1])
+                for raw in (line for line in lines[:-1] if line.strip()):
+                    text = _text(raw).strip()
+                    fits = self.reply_fits(barrier, text)
+                    earlier = any(self.reply_fits(c, text) for c in self._unanswered) or any(
+                        self.reply_fits(c, text) for c, _ in self._owed
+                    )
+                    if fits and not earlier:
+                        self.log.debug(
+                            "%s < %s (barrier: nothing owed before it is coming)", shown_name(self.url), text
+                        )
+                        self._answered()
+                        self._rx = bytearray()  # (what follows it is no reply: the flush takes it)
+                        return
+                    late = self._drop_owed_to(text) if earlier and not fits else None
+                    self.log.debug(
+                        "%s < %s (before the barrier's reply: %s)",
+                        shown_name(self.url),
+                        text,
+                        f"late reply to {late}: discarded" if late else "decides nothing",
+                    )
+                if time.monotonic() >= deadline:
+                    self.log.debug(
+                        "%s: no reply to the barrier %s within %g s", shown_name(self.url), barrier, deadline - t0
+                    )
+                    self._owe(barrier, time.monotonic() + self.timeout_s)
+                    return
+                buf += self._read_some(ser, f"it read the reply to {barrier}")
+        except BaseException:
+            # written: its reply may still come (a stop, a lost link); told from the next
+            # command's by the grammar, as any owed reply -- a switch-off does not wait for it
+            self._owe(barrier, time.monotonic() + self.timeout_s)
+            raise
+        finally:
+            self._last_exchange = time.monotonic()
 
     def _drain_pending(self) -> None:
         """Complete an exchange a signal cut short (``L8121.md``: "one command, one reply ... never
@@ -1445,7 +1587,7 @@ class SerialTransport:
             # (review s55rvlate); owed instead, a line still to come is told from XOF's echo by
             # the grammar (_is_late), as after any time-out
             self._held_for = None
-            self._owed.append((command, time.monotonic() + self.timeout_s))
+            self._owe(command, time.monotonic() + self.timeout_s)
             return
         ser, buf = self._serial, self._rx
         while not any(line.strip() for line in re.split(rb"[\r\n]", bytes(buf))[:-1]):
@@ -1453,7 +1595,7 @@ class SerialTransport:
                 self.log.debug(
                     "%s: no late reply to the interrupted %s within its time-out", shown_name(self.url), command
                 )
-                self._owed.append((command, time.monotonic() + self.timeout_s))
+                self._owe(command, time.monotonic() + self.timeout_s)
                 self._timed_out = True
                 return
             buf += self._read_some(ser, f"it awaited the interrupted {command}'s reply")
@@ -1514,9 +1656,12 @@ class SerialTransport:
         switched on; review s55). So it is not decided on at once (:meth:`_read_line`): the cost,
         when the owed reply never comes, is the rest of this reply's time-out, once."""
         self._forget_overdue()
-        if not self._owed or self.reply_fits is None:
+        if self.reply_fits is None:
             return False
-        return self.reply_fits(self._owed[0][0], text)
+        if self._owed and self.reply_fits(self._owed[0][0], text):
+            return True
+        # past its window too (session 56): L8121.md bounds no reply's lateness
+        return command.split(" ", 1)[0] in self._unanswered
 
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
@@ -1526,6 +1671,7 @@ class SerialTransport:
         # within this reply's time-out is this command's (the controller answers in order), and
         # the first was the late one; none, and the first is this command's
         undecided = self._held_for = None
+        noise = None  # a line that fits nothing, read while one was held: the reply garbled, or noise
         while True:
             cut = min((i for i in (buf.find(e) for e in _LINE_ENDS) if i >= 0), default=-1)
             if cut >= 0:
@@ -1536,10 +1682,13 @@ class SerialTransport:
                 # first, the switch-off after the stop waited a whole reply time-out (and a
                 # quarter) for a reply that had come. A line that may be a late one leaves first,
                 # as before: whether it was cannot be decided after a stop.
-                if self._owed or not line.strip():
+                if self._owed or self._unanswered or undecided is not None or not line.strip():
                     buf = self._rx = rest
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()
+                    if undecided is not None and not self.reply_fits(command, text):
+                        noise = self._beside_held(text, undecided[0]) or noise
+                        continue
                     if undecided is not None:
                         (first, late), undecided = undecided, None
                         self.log.debug(
@@ -1554,11 +1703,7 @@ class SerialTransport:
                         and self.reply_fits(command, text)
                         and self._undecided(command, text)
                     ):
-                        # no longer owed either way (a signal may end this wait: nothing is left
-                        # owed for a line already read)
-                        undecided = (text, self._owed.pop(0)[0])
-                        self._held_for = command
-                        buf = self._rx = rest  # (out already: one was owed)
+                        undecided = self._hold_back(command, text)
                         continue
                     self._held_for = None
                     if self._is_late(command, text):
@@ -1579,9 +1724,7 @@ class SerialTransport:
                 deadline = time.monotonic() + _READ_SLICE_S
                 continue
             if left <= 0 and undecided is not None:
-                self._owed.clear()  # nothing followed it: it was this command's; the owed reply is not coming
-                self._held_for = None
-                return undecided[0]
+                return self._release_held(command, undecided, noise)
             if left <= 0:
                 got = f"; partial reply {_quoted(bytes(buf))}" if buf else ""
                 self.log.debug("%s < (nothing within %g s)%s", shown_name(self.url), self.timeout_s, got)
@@ -1591,6 +1734,41 @@ class SerialTransport:
             # the port's read time-out is one slice, so the deadline is overshot by at most two
             # slices (one of them the grace above)
             buf += self._read_some(ser, f"it read the reply to {command}")
+
+    def _hold_back(self, command: str, text: str) -> tuple[str, str]:
+        """Hold back ``text``, which fits ``command`` and a command owed a reply (:meth:`_undecided`):
+        returns it and the command whose late reply it may be, no longer owed either way (a signal
+        may end the wait for a second line: nothing is left owed for a line already read)."""
+        owed = self._owed and self.reply_fits(self._owed[0][0], text)
+        self._held_for = command
+        return text, self._owed.pop(0)[0] if owed else f"an earlier {command.split(' ', 1)[0]}"
+
+    def _beside_held(self, text: str, held: str) -> str | None:
+        """A line read while ``held`` is held back that does not fit the command: not the line that
+        shows the held one was late. A late reply to another command owed (discarded: None), or
+        noise -- or this command's reply garbled, the held one then late -- returned, for
+        :meth:`_release_held` to decide on. Read as the deciding line, noise was returned as the
+        reply and the reply itself came during the next command (session 56)."""
+        late = self._drop_owed_to(text)
+        why = f"late reply to {late}: discarded" if late else "no reply to it"
+        self.log.debug("%s < %s (%s, while %r is held back)", shown_name(self.url), text, why, held)
+        return None if late else text
+
+    def _release_held(self, command: str, undecided: tuple[str, str], noise: str | None) -> str:
+        """The reply time-out has passed with a line held back (``undecided``: it and the command
+        whose late reply it may be) and no line of ``command``'s after it: it was ``command``'s,
+        and the owed reply is not coming -- unless ``noise`` came after it, which may be the reply
+        garbled (the held line then late): then neither is taken (:class:`_Undecided`), the
+        caller's to ask again. Either way nothing more is owed."""
+        self._answered()
+        self._held_for = None
+        if noise is not None:
+            raise _Undecided(
+                f"{shown_name(self.url)}: {command}: its reply is not known: {undecided[0]!r}, which may be "
+                f"the late reply to {undecided[1]}, then {noise!r}, which fits no reply (noise, or the reply "
+                "garbled); neither is taken"
+            )
+        return undecided[0]
 
     def dsr_low(self) -> str:
         """A note on a silent controller when the port reads DSR low, else "". L8121.md
@@ -1693,6 +1871,8 @@ class PipeTransport:
         #: The driver's reply grammar (as :attr:`SerialTransport.reply_fits`): the guardian applies
         #: its own; this one goes to the link this process opens if the guardian dies.
         self.reply_fits = None
+        #: The driver's barrier queries (as :attr:`SerialTransport.late_barriers`): the same.
+        self.late_barriers: tuple[str, ...] = ()
         #: The driver's re-identification (as :attr:`SerialTransport.on_reconnect`): the guardian
         #: checks its own reconnects; this one checks the port this process opens if the guardian
         #: dies (a new open of the port: the device behind it is asked before it is trusted).
@@ -1902,6 +2082,7 @@ class PipeTransport:
                 open=False,
             )
             self._direct.reply_fits = self.reply_fits
+            self._direct.late_barriers = self.late_barriers
             self._direct.on_reconnect = self.on_reconnect
             # the guardian had the port open: this first open here is a reconnect (checked), but a
             # handover (the port held until the guardian died), not a link lost: not counted as one

@@ -23,8 +23,9 @@ import time
 import pytest
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
-from acquisition.errors import DeviceError
-from acquisition.l8121 import L8121, SourceState
+from acquisition.errors import DeviceError, NoReply
+from acquisition.l8121 import DIALECT_B, L8121, SourceState
+from acquisition.transport import SerialTransport
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
 
@@ -135,6 +136,7 @@ def test_a_stop_while_a_reply_is_held_back_switches_off_promptly(sigint_default)
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
+        src._transport.late_barriers = ()  # the hold, as when the barrier query goes unanswered
         try:
             model.left_on()
             model.silence(True, execute=True)
@@ -172,6 +174,7 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect="B", **FAST)
+        src._transport.late_barriers = ()  # the hold, as when the barrier query goes unanswered
         try:
             _sts_owed_then_left_on(model, src)
             n = len(model.log)
@@ -195,4 +198,179 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
             assert all(c == "STS" for c, _ in after[2:]) and after[-1][1] != "XON", after
         finally:
             model.slow(0)
+            src.close()
+
+
+# -- session 56: what the guard costs, noise within it, a reply later than its window -----------
+
+
+def _b_link(url):
+    """A bare link with B's reply grammar and no barrier query (as the probe's, or a driver's
+    whose barrier went unanswered): the same-word guard is the hold alone."""
+    link = SerialTransport(url, timeout_s=TIMEOUT_S, min_interval_s=0.02)
+    link.reply_fits = DIALECT_B.reply_fits
+    return link
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_the_same_query_after_a_never_answered_one_costs_less_than_a_reply_time_out(dialect):
+    """One ``STS`` the controller never answers (lost); the tube is then switched on and
+    ``status()`` asked again. Its reply fits the ``STS`` still owed as well as the new one, so it
+    cannot be taken on its own word; waiting a reply time-out for a second line cost ``status()``
+    0.10 -> 0.42 s at T = 0.25 s (2.6 s at the dialects' 2 s). Once a query of another word has
+    been answered the owed reply can no longer come (the controller answers in order): the new
+    ``STS`` is then unambiguous, and read within one reply time-out, as the new state."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, **FAST)
+        try:
+            model.silence(True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            model.left_on()
+            t0 = time.monotonic()
+            state = src.status()
+            took = time.monotonic() - t0
+            assert state == SourceState.XRAY_ON
+            assert took < TIMEOUT_S, f"status() took {took:.3f} s after a never-answered STS"
+        finally:
+            src.close()
+
+
+def test_noise_between_a_late_reply_and_the_resent_querys_own_does_not_take_its_place():
+    """The late ``STANDBY`` (from before the tube went on) comes as the resent ``STS`` is sent,
+    then noise on the line, then the resent ``STS``'s own ``XON``. The noise fits no reply: it is
+    not the second line that decides the first was late -- read so, the noise was returned as the
+    reply and ``XON`` came during the next command, one behind. ``XON`` tells them apart."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        link = _b_link(server.url)
+        try:
+            model.slow(LATENCY_S)
+            model.hold_once("STS")
+            with pytest.raises(NoReply):
+                link.query("STS")
+            model.left_on()
+            model.inject_after("STS", lambda: server.line_noise(b"#~%\r"))
+            assert link.query("STS") == "XON"
+            assert link.query("SRL") == "REMOTE"
+        finally:
+            model.slow(0)
+            link.close()
+
+
+def test_noise_after_a_held_reply_is_a_clean_failure_never_a_wrong_pairing():
+    """One ``STS`` is never answered; the resent ``STS``'s own ``STANDBY`` comes, then noise
+    within the reply time-out. The noise may be a garbled own reply (the ``STANDBY`` then late)
+    or noise (the ``STANDBY`` its own): nothing tells them apart. Either the ``STANDBY`` is
+    returned or the query fails -- never the noise as the reply -- and the next queries read their
+    own replies."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        link = _b_link(server.url)
+        try:
+            model.silence(True)
+            with pytest.raises(NoReply):
+                link.query("STS")
+            model.silence(False)
+            noise = threading.Timer(LATENCY_S / 3, server.line_noise, (b"#~%\r",))
+            model.inject_after("STS", noise.start)
+            try:
+                assert link.query("STS") == "STANDBY"
+            except DeviceError as exc:
+                assert "#~%" in str(exc) and "STANDBY" in str(exc), exc
+            noise.join()
+            assert link.query("SRL") == "REMOTE"
+            assert link.query("STS") == "STANDBY"
+        finally:
+            link.close()
+
+
+def test_a_reply_later_than_its_window_is_not_read_as_the_resent_querys():
+    """L8121.md bounds no reply's lateness (B's driver calls 2 s a missed reply, 10 s of them a
+    failure). One ``STS`` is answered four time-outs late -- past the window the transport keeps
+    a timed-out command owed (one time-out from its time-out) -- and the tube is switched on
+    meanwhile; ``status()`` is asked again after that window, before the late ``STANDBY`` comes.
+    Read as the resent ``STS``'s, a tube emitting was reported off."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.delay_once(4 * TIMEOUT_S, "STS")
+            t0 = time.monotonic()
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            time.sleep(max(0.0, t0 + 3 * TIMEOUT_S - time.monotonic()))
+            assert src.status() == SourceState.XRAY_ON
+            assert src.status() == SourceState.XRAY_ON
+        finally:
+            src.close()
+
+
+def test_a_stop_during_the_barrier_query_leaves_its_reply_to_the_grammar(sigint_default):
+    """A stop (SIGINT) lands while the transport reads the reply to the barrier query it sent
+    before a resent ``STS`` (one ``STS`` never answered, the tube left on). The switch-off's
+    ``XOF`` goes out at once, the barrier's reply coming during its read is discarded (it is no
+    echo of ``XOF``), and the switch-off is confirmed only by an ``STS`` asked after the ``XOF``."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.left_on()
+            model.silence(True, execute=True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            model.slow(LATENCY_S / 2)  # the barrier's reply still on its way when the stop comes
+            n = len(model.log)
+
+            def stop_in_the_barrier():
+                while not model.log[n:]:
+                    time.sleep(0.002)
+                os.kill(os.getpid(), signal.SIGINT)
+
+            watcher = threading.Thread(target=stop_in_the_barrier, daemon=True)
+            watcher.start()
+            with pytest.raises(KeyboardInterrupt):
+                src.status()
+                time.sleep(TIMEOUT_S)
+            watcher.join(timeout=2)
+            assert model.log[n].command != "STS"  # the barrier, not the STS, was in flight
+            assert src.off().confirms_off and not model.xray_on
+            after = [(e.command, e.reply) for e in model.log[n + 1 :]]
+            assert after[0] == ("XOF", "XOF"), after
+            assert all(c == "STS" for c, _ in after[1:]) and after[-1][1] != "XON", after
+        finally:
+            model.slow(0)
+            src.close()
+
+
+def test_a_state_from_before_the_tube_went_on_is_never_read_however_late_it_comes():
+    """The limit, shown: L8121.md bounds no reply's lateness. One ``STS`` is answered eight
+    time-outs late, the controller answering nothing else meanwhile (in order: every command
+    sent behind it waits), and the tube is switched on just after that ``STS`` was asked. A status
+    loop keeps asking all along: every ``status()`` fails (no reply) until the controller answers
+    again, and none reads the ``STANDBY`` from before the tube went on -- it comes while a
+    question of the ``STS`` word is still unanswered, whatever its age, and that is cleared only
+    by a reply that comes after it. Then the loop reads the tube on."""
+    timeout_s = 0.1
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", poll_s=0.05, min_interval_s=0.02, timeout_s=timeout_s)
+        try:
+            model.delay_once(8 * timeout_s, "STS")
+            t0, read = time.monotonic(), []
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.left_on()
+            while time.monotonic() < t0 + 12 * timeout_s and read[-2:] != [SourceState.XRAY_ON] * 2:
+                try:
+                    read.append(src.status())
+                except DeviceError as exc:
+                    read.append(str(exc).split(": ", 1)[-1][:40])
+            assert SourceState.STANDBY not in read, read
+            assert read[-2:] == [SourceState.XRAY_ON] * 2, read
+        finally:
             src.close()

@@ -18,6 +18,7 @@ Faults, injected from any thread, now or at a given model time, in both dialects
 :meth:`~L8121Model.require_warm_up` (the controller decides a warm-up is
 due, as B's 8-hour idle rule does) and :meth:`~L8121Model.warm` (the reverse),
 :meth:`~L8121Model.inject_after` (any of these right after a given command),
+:meth:`PtyServer.line_noise` (bytes on the line that no command answered),
 :meth:`~L8121Model.controller_error` (``SER`` reports a control-board fault that nothing sent clears),
 :meth:`~L8121Model.set_operate_switch` (``LOCAL``: remote
 control commands refused with ``ERROR``, A's always accepted ``XOF`` excepted; B reports it with
@@ -954,6 +955,12 @@ class PtyServer(_LineServer):
         attrs[3] |= termios.ICANON
         termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
         os.write(self._master, attrs[6][termios.VEOF])
+
+    def line_noise(self, data: bytes) -> None:
+        """Put ``data`` on the line to the client now, between the controller's replies: noise (a
+        glitch, a discharge nearby), not a reply of the controller's. A fault the model cannot make:
+        its replies are its own (:meth:`L8121Model.garble_once` garbles one of them instead)."""
+        os.write(self._master, data)
 
     def _open(self) -> None:
         self._master, self._slave = os.openpty()
