@@ -891,7 +891,7 @@ def _fallen_back(
     leaves open where the ramp starts (a unit that ramps again from zero reads a fall from the
     old setting first, review s54rvsig), so ``highest`` counts a value only from when it has
     climbed more than two tolerances above its lowest reading (-inf before): a ramp of either
-    kind climbs to the setting from there (:meth:`L8121._wait_stable`)."""
+    kind climbs to the setting from there (:class:`_RampWatch`)."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
@@ -2971,7 +2971,10 @@ class L8121:
 
         While this driver keeps the beam on, it then waits (as :meth:`on` does) until the measured
         values are within tolerance of the new ones, so that :meth:`check` judges the beam against
-        the new setting; any failure switches off.
+        the new setting; any failure switches off. From the first command until then, the wait and
+        a beam monitor's :meth:`check` judge the ramp alike (:class:`_RampWatch`: above the higher
+        setting, fallen back after climbing, or under the drop bound longer than this unit's ramp
+        after XON allows), and a fault either one trips is what this raises.
         """
         beam_on = self._beam is not None
         # the tolerances only for a beam judged stable at these values (a warm-up's, and the
@@ -3777,7 +3780,9 @@ class L8121:
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
         state other than X-rays on, or a measured current (or voltage) below
         ``beam_drop_fraction`` of the set value (or above it by as much: ``2 - beam_drop_fraction``
-        of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
+        of it) switches off and raises :class:`SourceFault` naming which; while :meth:`set_values`
+        ramps the beam to a new setting, the measured values are judged as its wait judges them
+        (:class:`_RampWatch`). Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
         With the beam on, ``SER`` is read last, at most every ``error_poll_s``: a code not in
         ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`). ``error_code=False``
