@@ -27,8 +27,9 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo
 
 RAMP_S = 0.1  # the emulator's ramp, s: a few polls long, so a test stays well under a second
 # the driver's timing for tests (the link stays real); the stable wait's time-out is long enough
-# that a fault it alone catches fails the time bound below
-TIMING = dict(poll_s=0.03, min_interval_s=0.01, stable_timeout_s=3.0)
+# that a fault it alone catches fails the time bounds below by far, also on a loaded machine (at a
+# load of 5.5 on 2 cores a B drop with a monitor polling took 1.5 s to its XOF)
+TIMING = dict(poll_s=0.03, min_interval_s=0.01, stable_timeout_s=6.0)
 # (before, after): down in current, the voltage alone (the current untouched), up in current
 CHANGES = {"down": ((60, 250), (60, 100)), "kv_only": ((60, 250), (70, 250)), "up": ((60, 100), (60, 250))}
 
@@ -73,7 +74,7 @@ def test_a_beam_that_drops_at_a_change_before_climbing_is_switched_off_before_th
         assert "X-rays switched off" in str(caught.value) and not model.xray_on
     # the driver's own bound (twice the XON ramp, two reading gaps) is well inside this; the
     # stable wait's time-out is not
-    assert took < min(TIMING["stable_timeout_s"] / 3, 4 * t_on + 0.5), (took, t_on, str(caught.value))
+    assert took < min(TIMING["stable_timeout_s"] / 3, 4 * t_on + 1.0), (took, t_on, str(caught.value))
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
