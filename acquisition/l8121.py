@@ -891,7 +891,7 @@ def _fallen_back(
     leaves open where the ramp starts (a unit that ramps again from zero reads a fall from the
     old setting first, review s54rvsig), so ``highest`` counts a value only from when it has
     climbed more than two tolerances above its lowest reading (-inf before): a ramp of either
-    kind climbs to the setting from there (:meth:`L8121._wait_stable`)."""
+    kind climbs to the setting from there (:class:`_RampWatch`)."""
     for value, top, tol, setting, unit, what in (
         (ua, highest[1], tolerance[1], low[1], "µA", "current"),
         (kv, highest[0], tolerance[0], low[0], "kV", "voltage"),
@@ -902,6 +902,95 @@ def _fallen_back(
                 f"{setting} {unit}"
             )
     return None
+
+
+class _RampWatch:
+    """The judgement of a beam ramping to a setting, reading by reading: after XON (``after_xon``)
+    or after a change while on (:meth:`L8121.set_values`), where its wait and a beam monitor's
+    :meth:`L8121.check` in another thread feed it their readings (a lock: one reading at a time).
+
+    ``lower``, ``higher``: the lower and the higher of the old and the new setting (after XON
+    both the setting); ``jitter``: a reading's jitter, a tolerance (:meth:`L8121._watch_ramp`);
+    ``dwell_s``: per kV and µA, the longest time a healthy ramp of this unit reads under the drop
+    bound (``drop_fraction`` of ``lower``) after a change (inf: no bound).
+
+    :meth:`see` names the first of, or returns None:
+
+    - a beam above the setting (:func:`_beam_above`, by ``higher``): a ramp never passes it by the
+      drop bound's margin;
+    - a value that fell back after climbing (:func:`_fallen_back`). After XON the ramp starts
+      from nothing, so every reading counts. After a change, L8121.md does not say where the ramp
+      starts: a unit may ramp again from zero (tests/l8121_second_reading.py reads it so), its
+      values falling from the old setting first -- every change while on was switched off as a
+      dropped beam when a fall from the old setting counted (review s54rv). Either way the ramp,
+      once it climbs, climbs to the setting: a value counts from when it has risen more than two
+      jitters above its lowest reading;
+    - after a change, a value under the drop bound for longer than ``dwell_s`` (plus two of the
+      longest gaps between readings so far: a reading shows the beam only when taken). A change
+      down (250 -> 100 µA) or of the other value (the voltage alone) whose beam drops reads no
+      climb: before, only the stable wait's time-out caught it (up to ``stable_timeout_s``, 15 s
+      by default, with the tube on), since a fall may be the start of a ramp from zero. The count
+      starts again while the value still falls (by more than two jitters since it started: a unit
+      falling to nothing, at a speed L8121.md does not give), and ends at a reading at or over
+      the bound (a ramp from zero crosses it once, upward)."""
+
+    def __init__(self, lower, higher, jitter, drop_fraction: float, *, after_xon: bool, dwell_s):
+        self._lock = threading.Lock()
+        self.lower, self.higher, self.jitter = tuple(lower), tuple(higher), tuple(jitter)
+        self.drop_fraction, self.after_xon, self.dwell_s = drop_fraction, after_xon, tuple(dwell_s)
+        self.highest = (-math.inf, -math.inf)  # the readings' highest in this ramp
+        self.lowest = (math.inf, math.inf)  # their lowest
+        self.climbed = (-math.inf, -math.inf)  # their highest once climbed two jitters (-inf: not yet)
+        # the count of a run of readings under the drop bound: when it (re)started, and the value then
+        self.under_since: list[float | None] = [None, None]
+        self.under_from = [math.inf, math.inf]
+        self._last: float | None = None
+        self.gap = 0.0  # the longest time between two readings
+
+    def see(self, kv: float, ua: float, now: float) -> str | None:
+        """Judge a reading (NaN: not read, left out) taken at ``now`` (``time.monotonic()``)."""
+        with self._lock:
+            above = _beam_above(kv, ua, *self.higher, self.drop_fraction)
+            if above is not None:
+                return f"beam above the setting: {above}"
+            if self._last is not None:
+                self.gap = max(self.gap, now - self._last)
+            self._last = now
+            values = (kv, ua)
+            self.highest = tuple(max(top, v) for top, v in zip(self.highest, values))
+            self.lowest = tuple(min(low, v) for low, v in zip(self.lowest, values))
+            self.climbed = tuple(
+                max(top, v) if top > -math.inf or v > low + 2 * tol else top
+                for top, v, low, tol in zip(self.climbed, values, self.lowest, self.jitter)
+            )
+            fell = _fallen_back(
+                kv, ua, self.highest if self.after_xon else self.climbed, self.jitter, self.lower, self.drop_fraction
+            )
+            if fell:
+                return f"beam dropped while ramping up: {fell}"
+            return None if self.after_xon else self._stayed_under(values, now)
+
+    def _stayed_under(self, values, now: float) -> str | None:
+        for i, (v, low, allowed, unit, what) in enumerate(
+            zip(values, self.lower, self.dwell_s, ("kV", "µA"), ("voltage", "current"))
+        ):
+            bound = self.drop_fraction * low
+            if not v < bound:  # (NaN: not read, the count goes on)
+                if not math.isnan(v):
+                    self.under_since[i] = None
+                continue
+            if self.under_since[i] is None or v < self.under_from[i] - 2 * self.jitter[i]:
+                # (again while it still falls, by more than a reading's jitter: a fall under way,
+                # of a unit that falls to nothing before its ramp from zero, not a beam stopped)
+                self.under_since[i], self.under_from[i] = now, v
+            under = now - self.under_since[i]
+            if under > allowed + 2 * self.gap:
+                return (
+                    f"beam dropped during the change: measured {what} {v:g} {unit}, below "
+                    f"{self.drop_fraction:.0%} of the set {low} {unit} for {under:.2f} s, longer than a ramp of this "
+                    f"unit stays there ({allowed:.2f} s, from its ramp after XON)"
+                )
+        return None
 
 
 # -- the declarations -----------------------------------------------------------------------------
@@ -1679,6 +1768,17 @@ class L8121:
         self._error_good_at: float | None = None
         # the previous ones while set_values() ramps the beam on to new ones (_beam_span)
         self._beam_from: tuple[int, int] | None = None
+        # while set_values() changes the beam: the ramp's judgement, shared by its wait and a beam
+        # monitor's check() in another thread (_RampWatch); None otherwise
+        self._ramp_watch: _RampWatch | None = None
+        # what the last on() saw of its ramp from zero: (seconds from XON's echo to the stable
+        # reading, the (kV, µA) set, their tolerances), the unit's own measure of how fast it ramps
+        self._xon_ramp: tuple[float, tuple[int, int], tuple[float, float]] | None = None
+        # how many faults _trip() has begun to switch off for, and the last one's exception once
+        # made, (its number, the exception or None): a wait whose beam another thread switches off
+        # meanwhile says that thread's cause, not the standby it then reads (_tripped_elsewhere)
+        self._trips, self._last_trip = 0, (0, None)
+        self._trip_made = threading.Condition()
         # One switch-off at a time, and it goes first: the thread that owns it (_off_thread) sends
         # its XOF/STS before any other thread's queued exchange, and a second caller of off()
         # waits for its outcome instead of repeating it (a silent controller would cost each
@@ -2873,7 +2973,10 @@ class L8121:
 
         While this driver keeps the beam on, it then waits (as :meth:`on` does) until the measured
         values are within tolerance of the new ones, so that :meth:`check` judges the beam against
-        the new setting; any failure switches off.
+        the new setting; any failure switches off. From the first command until then, the wait and
+        a beam monitor's :meth:`check` judge the ramp alike (:class:`_RampWatch`: above the higher
+        setting, fallen back after climbing, or under the drop bound longer than this unit's ramp
+        after XON allows), and a fault either one trips is what this raises.
         """
         beam_on = self._beam is not None
         # the tolerances only for a beam judged stable at these values (a warm-up's, and the
@@ -2885,6 +2988,12 @@ class L8121:
             # (L8121.md): the tube's values are the ones this driver last set and saw stable
             _, old_ua = self._beam if beam_on and self.dialect is DIALECT_B else self.setpoint()
             self._beam_from = self._beam  # (None while off)
+            if beam_on:
+                # the new setting and the ramp's judgement before the first command: a unit may start
+                # its ramp at that one (from zero: at once under the old setting's drop bound), and a
+                # beam monitor's check() meanwhile judges by both settings, as the wait does
+                self._beam = (kv_i, ua_i)
+                self._ramp_watch = self._watch_ramp((kv_i, ua_i), after_xon=False)
             if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
                 self._do(voltage, kv_i)
                 self._do(current, ua_i)
@@ -2896,14 +3005,13 @@ class L8121:
                 # controller has read back what it will emit at (a wrong voltage_scale shows here)
                 self._read_back(kv_i, ua_i)
             if beam_on:
-                self._beam = (kv_i, ua_i)
-                self._wait_stable(kv_i, ua_i, time.monotonic())
+                self._wait_stable(kv_i, ua_i, time.monotonic(), watch=self._ramp_watch)
         except BaseException:
             if beam_on:
                 self._off_quietly()
             raise
         finally:
-            self._beam_from = None
+            self._beam_from, self._ramp_watch = None, None
         return kv_i, ua_i
 
     def _read_back(self, kv: int, ua: int) -> tuple[float, float]:
@@ -3270,6 +3378,8 @@ class L8121:
         except BaseException:
             self._off_quietly()
             raise
+        c = self.config
+        self._xon_ramp = (reading["seconds"], (kv_i, ua_i), (c.tolerance_kv(kv_i), c.tolerance_ua(ua_i)))
         logger.info(
             "%s: X-rays on at %d kV %d µA: measured %g kV %g µA after %.2f s",
             shown_name(self.port),
@@ -3398,62 +3508,40 @@ class L8121:
             return "controller not ready"
         return "controller not ready" if closed else "controller not ready: the interlock is open (close it first)"
 
-    def _wait_stable(self, kv: int, ua: int, t0: float, *, after_xon: bool = False) -> dict[str, Any]:
+    def _wait_stable(
+        self, kv: int, ua: int, t0: float, *, after_xon: bool = False, watch: _RampWatch | None = None
+    ) -> dict[str, Any]:
         """Poll until the measured values are within tolerance of ``kv``, ``ua``. ``after_xon``: the
-        state may still read standby for ``xon_start_s`` (never once it has read X-rays on)."""
+        state may still read standby for ``xon_start_s`` (never once it has read X-rays on).
+        ``watch``: the ramp's judgement (:class:`_RampWatch`), shared with a beam monitor's
+        :meth:`check` meanwhile (set_values()'s); None: one of the wait's own."""
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
-        highest = (-math.inf, -math.inf)  # the measured kV and µA at their highest in this ramp
-        # after a change while on: the lowest readings so far, and the highest since each had
-        # climbed more than two tolerances above its lowest (-inf: not yet; see below)
-        lowest, climbed = (math.inf, math.inf), (-math.inf, -math.inf)
-        # a reading's jitter, for those two: the tolerance at the higher of the old and the new
-        # setting (_beam_span), where the beam starts or ends. The new one alone, lower (250 ->
-        # 8 µA: 2 µA, not 5), called a stable meter's two readings at the old setting a climb,
-        # and the fall of a unit that ramps again from zero a dropped beam (review s55rvacq)
-        lower, higher = self._beam_span((kv, ua))  # (set before the wait: the same all through it)
-        jitter = (max(tol_kv, c.tolerance_kv(higher[0])), max(tol_ua, c.tolerance_ua(higher[1])))
+        watch = watch if watch is not None else self._watch_ramp((kv, ua), after_xon=after_xon)
+        trips = self._trips  # (another thread's trip meanwhile: _tripped_elsewhere)
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
+            if self._trips != trips:
+                # another thread (a beam monitor's check()) switches off for a fault meanwhile: its
+                # cause, not the standby this reading may have found after its XOF ("beam dropped:
+                # state STANDBY" was set_values()'s error, the real cause said by the monitor alone)
+                elsewhere = self._tripped_elsewhere()
+                if elsewhere is not None:
+                    raise elsewhere
             seen_on |= state == SourceState.XRAY_ON
             if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, t0):
                 time.sleep(c.poll_s)
                 continue
             if state != SourceState.XRAY_ON:
                 self._trip(self._reason_after_off(state, m_kv, m_ua, ramping=True))
-            # a ramp from zero after XON never passes the setting by the drop bound's margin, nor
-            # one after set_values() the higher of the old and the new ones (_beam_span)
-            above = _beam_above(m_kv, m_ua, *higher, c.beam_drop_fraction)
-            if above is not None:
-                self._trip(f"beam above the setting: {above}")
-            highest = (max(highest[0], m_kv), max(highest[1], m_ua))  # (NaN: not read, left out)
-            # After XON the ramp starts from nothing, so a fall is a drop. After a change while
-            # on, L8121.md does not say where the ramp starts: a unit may ramp again from zero
-            # (tests/l8121_second_reading.py reads it so), its values falling from the old
-            # setting first -- every change while on was switched off as a dropped beam when a
-            # fall from the old setting counted (review s54rv). Either way the ramp, once it
-            # climbs, climbs to the setting: a value that has risen more than two tolerances
-            # (a reading's jitter, _fallen_back) above its lowest and then falls under the drop
-            # bound is a dropped beam, caught at that reading, not by the stable wait's time-out
-            # (up to stable_timeout_s with the tube on). A fall before any climb (a ramp down, a
-            # value not changed) is still the stable wait's alone: it may be a ramp's start.
-            lowest = (min(lowest[0], m_kv), min(lowest[1], m_ua))
-            climbed = tuple(
-                max(top, value) if top > -math.inf or value > low + 2 * tol else top
-                for top, value, low, tol in zip(climbed, (m_kv, m_ua), lowest, jitter)
-            )
-            fell = _fallen_back(
-                m_kv,
-                m_ua,
-                highest if after_xon else climbed,
-                jitter,
-                lower,
-                c.beam_drop_fraction,
-            )
-            if fell:
-                self._trip(f"beam dropped while ramping up: {fell}")
+            # a ramp that passes the setting, falls back after climbing, or stays under the drop
+            # bound longer than any ramp of this unit could (_RampWatch): caught at that reading,
+            # not by the stable wait's time-out (up to stable_timeout_s with the tube on)
+            why = watch.see(m_kv, m_ua, time.monotonic())
+            if why:
+                self._trip(why)
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
             if not self.interlock_closed():
                 self._trip("interlock open")
@@ -3477,6 +3565,59 @@ class L8121:
                 )
                 raise self._switched_off(DeviceError, why, off, failed) from failed
             time.sleep(c.poll_s)
+
+    def _watch_ramp(self, beam: tuple[int, int], *, after_xon: bool) -> _RampWatch:
+        """The judgement of a ramp to ``beam`` (after XON, or set_values() from :attr:`_beam_from`).
+
+        A reading's jitter is the tolerance at the higher of the old and the new setting
+        (:meth:`_beam_span`), where the beam starts or ends: the new one alone, lower (250 -> 8 µA:
+        2 µA, not 5), called a stable meter's two readings at the old setting a climb, and the fall
+        of a unit that ramps again from zero a dropped beam (review s55rvacq).
+
+        After a change, how long a value may stay under the drop bound before it climbs
+        (:class:`_RampWatch`'s ``dwell_s``) comes from this unit's own ramp after XON
+        (:attr:`_xon_ramp`, from zero to within tolerance of its setting in ``t_on``): L8121.md
+        says the values ramp "after XON or a change" alike, not where from, nor how fast they fall.
+        A ramp from zero to a new setting passes its drop bound no later than ``t_on`` if its
+        duration is fixed, ``t_on * bound / reached`` if its rate is (``reached``: the XON
+        setting less its tolerance). Its count starts where a fall ends (a unit may fall to
+        nothing first, at a speed L8121.md does not give), up to two jitters above the bottom,
+        and the ramp may wait there before it climbs, as XON's state may lag its echo (t_on holds
+        that lag, a change's is not documented): twice that, ``2 * t_on * max(1, bound /
+        reached)``, for each of kV and µA; the watch adds two of its longest gaps between
+        readings (a reading shows the beam only when it is taken). A value the XON ramp did not
+        raise (0 µA set) gives no bound."""
+        c = self.config
+        lower, higher = self._beam_span(beam)
+        jitter = (
+            max(c.tolerance_kv(beam[0]), c.tolerance_kv(higher[0])),
+            max(c.tolerance_ua(beam[1]), c.tolerance_ua(higher[1])),
+        )
+        dwell = (math.inf, math.inf)
+        if not after_xon and self._xon_ramp is not None:
+            t_on, setting, tol = self._xon_ramp
+            dwell = tuple(
+                2 * t_on * max(1.0, c.beam_drop_fraction * low / (s - t)) if s - t > 0 else math.inf
+                for low, s, t in zip(lower, setting, tol)
+            )
+        return _RampWatch(lower, higher, jitter, c.beam_drop_fraction, after_xon=after_xon, dwell_s=dwell)
+
+    def _tripped_elsewhere(self) -> SourceFault | None:
+        """The fault another thread switches off for while this one waits for a ramp, as this
+        thread's exception (the same words and switch-off outcome), once that thread has made it:
+        waited for as long as a switch-off may take (each attempt an XOF and an STS, a reply's wait
+        each, and the controller's error code). None: not made by then (the switch-off itself
+        failed with another error), and this thread goes on as before."""
+        c = self.config
+        wait_s = c.off_confirm_s + (2 * c.off_attempts + 1) * self.timeout_s
+        with self._trip_made:
+            self._trip_made.wait_for(lambda: self._last_trip[0] == self._trips, timeout=wait_s)
+            number, other = self._last_trip
+        if other is None or number != self._trips:
+            return None
+        err = SourceFault(str(other))
+        err.switch_off = getattr(other, "switch_off", None)
+        return err
 
     def _coming_on(self, state: SourceState, kv: float, ua: float, t0: float) -> bool:
         """Whether a reading after XON (answered at ``t0``), before the first X-rays-on one, is the
@@ -3553,11 +3694,12 @@ class L8121:
         low, high = (min(a, b) for a, b in zip(beam, was)), (max(a, b) for a, b in zip(beam, was))
         return tuple(low), tuple(high)
 
-    def _evident_fault(self, state: SourceState, kv: float, ua: float) -> bool:
+    def _evident_fault(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False) -> bool:
         """Whether a beam reading alone shows that the beam this driver keeps is not as set (a
         state other than X-rays on, or a measured value below ``beam_drop_fraction``): then it is
-        switched off before anything else is asked (the interlock, for the message)."""
-        return self._fault_reason(state, kv, ua, interlock_closed=True) is not None  # no SIN asked
+        switched off before anything else is asked (the interlock, for the message). ``ramping``:
+        the state alone (the values are the ramp's judgement, :class:`_RampWatch`)."""
+        return self._fault_reason(state, kv, ua, ramping=ramping, interlock_closed=True) is not None  # no SIN asked
 
     def _reason_after_off(self, state: SourceState, kv: float, ua: float, *, ramping: bool = False):
         """The fault's reason, to be worked out after the ``XOF`` (:meth:`_trip` calls it): ``SIN``
@@ -3579,14 +3721,23 @@ class L8121:
         """Switch off and raise :class:`SourceFault` naming ``reason`` (or what ``reason(ask)``
         returns, called after the switch-off; see :meth:`_reason_after_off`). ``ask_code``: as
         :meth:`_switched_off`'s."""
-        state, failed = self._off_for_fault()
-        if callable(reason):
-            reason = reason(self.off_failed is None)
-        if state == SourceState.OVERLOAD and not reason.startswith("overload"):
-            # B reads state and current in separate exchanges: an overload between them looks
-            # like a dropped beam until the STS after XOF says what it was
-            reason = f"overload ({reason})"
-        err = self._switched_off(SourceFault, reason, state, failed, ask_code=ask_code)
+        with self._trip_made:  # counted before its XOF: a wait that reads the tube off after it knows why
+            self._trips += 1
+            number = self._trips
+        err = None
+        try:
+            state, failed = self._off_for_fault()
+            if callable(reason):
+                reason = reason(self.off_failed is None)
+            if state == SourceState.OVERLOAD and not reason.startswith("overload"):
+                # B reads state and current in separate exchanges: an overload between them looks
+                # like a dropped beam until the STS after XOF says what it was
+                reason = f"overload ({reason})"
+            err = self._switched_off(SourceFault, reason, state, failed, ask_code=ask_code)
+        finally:
+            with self._trip_made:
+                self._last_trip = (number, err)
+                self._trip_made.notify_all()
         # the caller reports the SourceFault (the command line's error line; the series names a
         # fault it did not stop on): an ERROR here said the fault a second time on the terminal,
         # and for the guardian's watchdog a third. The notebook keeps it
@@ -3631,7 +3782,9 @@ class L8121:
         While this driver keeps the beam on (after :meth:`on`), an overload, an open interlock, a
         state other than X-rays on, or a measured current (or voltage) below
         ``beam_drop_fraction`` of the set value (or above it by as much: ``2 - beam_drop_fraction``
-        of it) switches off and raises :class:`SourceFault` naming which. Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
+        of it) switches off and raises :class:`SourceFault` naming which; while :meth:`set_values`
+        ramps the beam to a new setting, the measured values are judged as its wait judges them
+        (:class:`_RampWatch`). Otherwise only an overload is a fault. A fault the beam reading shows by itself (the
         state, the measured values) is switched off before ``SIN`` is asked, for the message only.
         With the beam on, ``SER`` is read last, at most every ``error_poll_s``: a code not in
         ``allowed_error_codes`` switches off too (:meth:`_watch_error_code`). ``error_code=False``
@@ -3655,8 +3808,17 @@ class L8121:
             self._local.epoch = -1 if pending else self._routine_epoch
         try:
             state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
-            if self._beam is not None and self._evident_fault(state, kv, ua):
-                self._trip(self._reason_after_off(state, kv, ua))  # XOF first, then SIN for the message
+            # while set_values() ramps the beam to a new setting, its values are judged as its wait
+            # judges them (the same watch): by the lower setting's drop bound alone, a unit that
+            # ramps again from zero read dropped at once, and this poll switched it off
+            watch = self._ramp_watch if self._beam is not None else None
+            ramping = watch is not None
+            if self._beam is not None and self._evident_fault(state, kv, ua, ramping=ramping):
+                # XOF first, then SIN for the message
+                self._trip(self._reason_after_off(state, kv, ua, ramping=ramping))
+            why = watch.see(kv, ua, time.monotonic()) if ramping else None
+            if why:
+                self._trip(why)
             if self._beam is None and state == SourceState.OVERLOAD:
                 self._trip("overload")
             closed = self.interlock_closed()

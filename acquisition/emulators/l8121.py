@@ -197,6 +197,11 @@ class L8121Model:
         self._warmup_t0 = 0.0
         self._set_kv, self._set_ua = int(kv_min), 0
         self._ramp_t0, self._ramp_from = 0.0, (0.0, 0.0)
+        # how a change while on ramps (ramp_after_change): "here" from where the tube is, or "zero"
+        # down to nothing over a fall time, then up from zero; _falling: (start, from, fall_s) of a fall
+        self._change_start, self._change_fall_s = "here", 0.0
+        self._falling: tuple[float, tuple[float, float], float] | None = None
+        self._meter_noise, self._meter_sign = 0.0, 1.0  # the current meter's noise (meter_jitter)
         self._beam_dropped = False
         self._runaway = (1.0, 1.0)  # measured kV, µA factors of a runaway beam (runaway())
         self._interlock_open = False
@@ -230,10 +235,10 @@ class L8121Model:
             "RST": self._rst,
             "CFS": self._cfs,
             "STS": lambda t: f"STS {self._state_a():d}",
-            "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state_a(), *self._measured(t)),
+            "SAR": lambda t: "SAR {:d} {:.0f} {:.0f} 0 0 0 0".format(self._state_a(), *self._meter(t)),
             "SVI": lambda t: f"SVI {self._set_kv} {self._set_ua}",
             "SHV": lambda t: f"SHV {self._measured(t)[0]:.0f}",
-            "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}",
+            "SCU": lambda t: f"SCU {self._meter(t)[1]:.0f}",
             "SIN": lambda t: f"SIN {int(self._interlock_open)}",
             "SWE": lambda t: f"SWE {self._warmup:d}",
             "SPH": lambda t: f"SPH {int(self._state == SourceState.WARMING_UP)}",
@@ -263,7 +268,7 @@ class L8121Model:
             "CFL": lambda t: self._cf(2, "CFL"),
             "STS": lambda t: _B_STATES[self._state],
             "SHV": lambda t: f"SHV {self._measured(t)[0]:.1f}kV",
-            "SCU": lambda t: f"SCU {self._measured(t)[1]:.0f}uA",
+            "SCU": lambda t: f"SCU {self._meter(t)[1]:.0f}uA",
             "SPV": lambda t: f"SPV {self._set_kv:.1f}kV",
             "SPC": lambda t: f"SPC {self._set_ua}uA",
             "SIN": lambda t: "INTER LOCK OFF" if self._interlock_open else "INTER LOCK ON",
@@ -289,6 +294,7 @@ class L8121Model:
             if self._state == SourceState.XRAY_ON:
                 self._advance()
                 self._ramp_from, self._ramp_t0 = self._measured(self.time), self.time
+                self._falling = None  # (a fall under way ends where it is: the new ramp starts there)
             self._ramp_s = float(value)
 
     # -- read-only state for tests ----------------------------------------------------------------
@@ -505,6 +511,30 @@ class L8121Model:
                 raise RuntimeError(f"L8121 emulator: {line!r} refused ({self!r}): not left on")
         with self._lock:
             self._ramp_t0 -= self.ramp_s
+
+    def ramp_after_change(self, start: str = "here", fall_s: float = 0.0) -> None:
+        """How the measured values ramp after a setting changed while X-rays are on. L8121.md: they
+        "ramp towards the set values over a few seconds after XON or a change", not from where.
+        ``"here"`` (the default): from where the tube is, straight to the new setting. ``"zero"``:
+        down to nothing over ``fall_s`` (a supply discharging; 0: at once), then up from zero to the
+        new setting over :attr:`ramp_s`, as after ``XON`` (the reading of
+        ``tests/l8121_second_reading.py``). A change during a fall falls again from where it is."""
+        if start not in ("here", "zero"):
+            raise ValueError(f"start {start!r}: expected 'here' or 'zero'")
+        if not 0 <= fall_s < math.inf:
+            raise ValueError(f"fall_s must be >= 0 and finite, got {fall_s}")
+        with self._lock:
+            self._change_start, self._change_fall_s = start, float(fall_s)
+
+    def meter_jitter(self, fraction: float) -> None:
+        """Let the current meter read ``fraction`` of the tube's current above it and below it by
+        turns, one reply that reports the current after another (A's ``SAR`` and ``SCU``, B's
+        ``SCU``): a meter whose noise grows with the value it reads, in a fixed order (no timing
+        in a test). 0 restores. :meth:`measured` stays the tube's own value."""
+        if not 0 <= fraction < 1:
+            raise ValueError(f"fraction must be >= 0 and < 1, got {fraction}")
+        with self._lock:
+            self._meter_noise = float(fraction)
 
     def stuck_on(self, on: bool = True) -> None:
         """Acknowledge ``XOF`` but keep emitting (a failed high-voltage relay)."""
@@ -725,7 +755,7 @@ class L8121Model:
 
     def _switch_on(self, t):
         self._state, self._beam_dropped = SourceState.XRAY_ON, False
-        self._ramp_t0, self._ramp_from = t, (0.0, 0.0)
+        self._ramp_t0, self._ramp_from, self._falling = t, (0.0, 0.0), None
 
     def _xof(self, t):
         if self._stuck:
@@ -804,14 +834,36 @@ class L8121Model:
     def _measured(self, t: float) -> tuple[float, float]:
         if self._state != SourceState.XRAY_ON:
             return 0.0, 0.0
-        f = 1.0 if self.ramp_s <= 0 else min(1.0, max(0.0, (t - self._ramp_t0) / self.ramp_s))
-        kv0, ua0 = self._ramp_from
-        kv, ua = kv0 + (self._set_kv - kv0) * f, ua0 + (self._set_ua - ua0) * f
+        fall = self._falling
+        if fall is not None and t < fall[0] + fall[2]:  # falling to nothing (ramp_after_change("zero"))
+            g = 1 - (t - fall[0]) / fall[2]
+            kv, ua = fall[1][0] * g, fall[1][1] * g
+        else:
+            f = 1.0 if self.ramp_s <= 0 else min(1.0, max(0.0, (t - self._ramp_t0) / self.ramp_s))
+            kv0, ua0 = self._ramp_from
+            kv, ua = kv0 + (self._set_kv - kv0) * f, ua0 + (self._set_ua - ua0) * f
         kv, ua = kv * self._runaway[0], ua * self._runaway[1]
         return kv, (0.0 if self._beam_dropped else ua)
 
+    def _meter(self, t: float) -> tuple[float, float]:
+        """The measured values a reply reports: the current with the meter's noise (meter_jitter),
+        its sign turned at each report."""
+        kv, ua = self._measured(t)
+        if self._meter_noise and ua:
+            ua *= 1 + self._meter_noise * self._meter_sign
+            self._meter_sign = -self._meter_sign
+        return kv, ua
+
     def _retarget(self, t):
-        """A new setting while on ramps from where the tube is now."""
+        """A new setting while on ramps from where the tube is now, or (ramp_after_change("zero"))
+        falls from there to nothing and ramps again from zero."""
+        if self._change_start == "zero" and self._state == SourceState.XRAY_ON:
+            # from the tube's values, without a runaway's factors (_measured applies them after)
+            kv, ua = self._measured(t)
+            kv, ua = kv / (self._runaway[0] or 1.0), ua / (self._runaway[1] or 1.0)
+            self._falling = (t, (kv, ua), self._change_fall_s) if self._change_fall_s > 0 else None
+            self._ramp_from, self._ramp_t0 = (0.0, 0.0), t + self._change_fall_s
+            return
         self._ramp_from, self._ramp_t0 = self._measured(t), t
 
     # -- model time -------------------------------------------------------------------------------

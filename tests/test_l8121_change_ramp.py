@@ -1,0 +1,180 @@
+"""A setting changed while the beam is on (``L8121.set_values``): the ramp that follows, and a beam
+that drops during it, through real pyserial on real pseudo-terminals, in both dialects.
+
+``L8121.md`` says the measured values "ramp towards the set values over a few seconds after XON or
+a change", not from where. The emulator's two readings (``L8121Model.ramp_after_change``): a unit
+that ramps from the old values straight to the new ones ("here"), and one whose values fall to
+nothing and ramp again from zero ("zero"), its current meter noisy (``meter_jitter``). A beam that
+drops at the change (``drop_beam`` right after the change's last command) must be switched off
+once no healthy ramp of either kind can still read it, long before the stable wait's time-out;
+a healthy ramp of either kind must never be called dropped, by the wait or by a beam monitor's
+``check()`` in another thread meanwhile.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from acquisition.emulators.l8121 import L8121Model, PtyServer
+from acquisition.errors import DeviceError, SourceFault
+from acquisition.l8121 import L8121
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals (POSIX)")
+
+RAMP_S = 0.1  # the emulator's ramp, s: a few polls long, so a test stays well under a second
+# the driver's timing for tests (the link stays real); the stable wait's time-out is long enough
+# that a fault it alone catches fails the time bounds below by far, also on a loaded machine (at a
+# load of 5.5 on 2 cores a B drop with a monitor polling took 1.5 s to its XOF)
+TIMING = dict(poll_s=0.03, min_interval_s=0.01, stable_timeout_s=6.0)
+# (before, after): down in current, the voltage alone (the current untouched), up in current
+CHANGES = {"down": ((60, 250), (60, 100)), "kv_only": ((60, 250), (70, 250)), "up": ((60, 100), (60, 250))}
+
+
+def _unit(dialect: str, start: str, *, fall_s: float = 0.0, jitter: float = 0.0, ramp_s=RAMP_S) -> L8121Model:
+    model = L8121Model(dialect=dialect, warmed_up=True, warmup_s=0, ramp_s=ramp_s)
+    model.ramp_after_change(start, fall_s=fall_s)
+    model.meter_jitter(jitter)
+    return model
+
+
+def _xof_time(model: L8121Model) -> float:
+    return next(e.t for e in model.log if e.command == "XOF")
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("start", ["here", "zero"])
+@pytest.mark.parametrize("change", ["down", "kv_only"])
+def test_a_beam_that_drops_at_a_change_before_climbing_is_switched_off_before_the_stable_time_out(
+    dialect, start, change
+):
+    """The beam drops as the change's last command is answered (an emitter failing mid-change):
+    its current reads nothing from then on, while B's STS still reads XON. Before, a change down
+    (250 -> 100 µA) or one of the voltage alone left it to the stable wait's time-out (15 s by
+    default with the tube on): the fall rule needs a climb first. A healthy ramp of either kind
+    brings the current over the drop bound within about the time the unit took after XON (its
+    ramp from zero), so the switch-off comes within a small multiple of that, not the time-out."""
+    before, after = CHANGES[change]
+    model = _unit(dialect, start)
+    dropped_at = []
+
+    def drop():
+        dropped_at.append(model.time)
+        model.drop_beam()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        t_on = src.on(*before)["seconds"]
+        model.inject_after("CUR", drop)  # the change's last command (the power order sends CUR second)
+        with pytest.raises(SourceFault, match=r"measured current 0 µA") as caught:
+            src.set_values(*after)
+        took = _xof_time(model) - dropped_at[0]
+        assert "X-rays switched off" in str(caught.value) and not model.xray_on
+    # the driver's own bound (twice the XON ramp, two reading gaps) is well inside this; the
+    # stable wait's time-out is not
+    assert took < min(TIMING["stable_timeout_s"] / 3, 4 * t_on + 1.0), (took, t_on, str(caught.value))
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize(("start", "fall_s"), [("here", 0.0), ("zero", 0.0), ("zero", RAMP_S)])
+@pytest.mark.parametrize("change", ["down", "kv_only", "up"])
+def test_a_healthy_ramp_on_a_jittery_meter_is_not_called_dropped_by_the_wait_nor_a_monitor(
+    dialect, start, fall_s, change
+):
+    """A healthy unit, its current meter reading 1.9 % above and below the tube's current by turns
+    (within the tolerance at every setting here), ramps to the new setting from the old values or
+    again from zero (at once, or falling over as long as its ramp up takes), while a beam monitor
+    polls check() in another thread. Neither the wait nor the monitor may call it dropped: the
+    monitor judged a change by the lower setting's drop bound alone, and a unit that ramps from zero
+    read under it at once (the closing note of session 55: untested)."""
+    _changes_without_a_fault(_unit(dialect, start, fall_s=fall_s, jitter=0.019), dialect, *CHANGES[change])
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_unit_that_falls_to_nothing_slower_than_it_ramps_up_is_not_called_dropped(dialect):
+    """The voltage alone changed (60 -> 70 kV) on a unit whose values fall to nothing over ten of
+    its ramps up and then ramp again from zero: its current, untouched, reads under half of its
+    250 µA for half the fall and half the ramp up, five ramps' time. L8121.md says nothing of how
+    fast a unit falls; counted from the first reading under the drop bound, twice the ramp after
+    XON called this fall a dropped beam. A value still falling is a fall under way, not a beam
+    that has stopped where it dropped: the count starts where the fall ends."""
+    model = _unit(dialect, "zero", fall_s=10 * RAMP_S / 2, jitter=0.019, ramp_s=RAMP_S / 2)
+    _changes_without_a_fault(model, dialect, *CHANGES["kv_only"])
+
+
+def _changes_without_a_fault(model: L8121Model, dialect: str, before, after) -> None:
+    """on(*before), then set_values(*after) while a beam monitor polls check(): no fault from
+    either, the beam stable at ``after``, then switched off."""
+    faults, stop = [], threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(*before)
+
+        def monitor():
+            while not stop.wait(src.config.poll_s / 2):  # as a series' beam monitor, more often
+                try:
+                    src.check()
+                except Exception as exc:  # recorded: the assertion names it
+                    faults.append(exc)
+                    return
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        try:
+            src.set_values(*after)
+        except DeviceError as exc:
+            faults.append(exc)
+        finally:
+            stop.set()
+            poller.join()
+        try:
+            assert faults == [] and model.xray_on, faults
+            kv, ua = src.measured()
+            assert abs(kv - after[0]) <= src.config.tolerance_kv(after[0])
+            assert abs(ua - after[1]) <= src.config.tolerance_ua(after[1])
+            assert "XOF" not in model.commands
+        finally:
+            src.off()
+    assert not model.xray_on
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("start", ["here", "zero"])
+def test_a_monitor_polling_while_a_change_drops_the_beam_leaves_the_tube_off_and_says_so_once(dialect, start):
+    """A beam monitor's check() in another thread while a change (250 -> 100 µA) drops the beam:
+    whichever thread sees it first switches off, the tube is off, confirmed by STS, and the change
+    comes out of set_values() as that fault, before the stable wait's time-out."""
+    before, after = CHANGES["down"]
+    model = _unit(dialect, start)
+    faults, stop = [], threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(*before)
+
+        def monitor():
+            while not stop.wait(src.config.poll_s / 2):
+                try:
+                    src.check()
+                except Exception as exc:
+                    faults.append(exc)
+                    return
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        model.inject_after("CUR", model.drop_beam)
+        t0 = time.monotonic()
+        try:
+            with pytest.raises(DeviceError) as caught:
+                src.set_values(*after)
+        finally:
+            took = time.monotonic() - t0
+            stop.set()
+            poller.join()
+        assert not model.xray_on and src.confirmed_off is not None
+        assert took < TIMING["stable_timeout_s"] / 2, (took, str(caught.value))
+    # set_values() names the cause whichever thread saw it: it said "beam dropped: state STANDBY"
+    # (the standby after the monitor's XOF), the current's fall said by the monitor alone
+    assert "measured current 0 µA" in str(caught.value), (str(caught.value), faults)
+    assert isinstance(caught.value, SourceFault) and "X-rays switched off" in str(caught.value)
