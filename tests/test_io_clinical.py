@@ -917,3 +917,67 @@ def test_the_png_handed_to_opencv_keeps_each_idat_within_a_chunk_s_most(tmp_path
             lengths.append(length)
         pos += 12 + length
     assert len(lengths) >= 4 and max(lengths) <= most, lengths
+
+
+def _deflated_zeros(path, side):
+    """A deflated DICOM of one ``side`` x ``side`` frame of zeros (deflate's 1:1000 of a constant
+    image: a few KB of file)."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    return _dicom(path, np.zeros((side, side), np.uint16), syntax=DeflatedExplicitVRLittleEndian)
+
+
+def test_a_deflated_dicom_is_refused_by_the_budget_before_it_is_inflated(tmp_path):
+    """pydicom inflates a deflated dataset whole as it opens it (zlib.decompress of the rest of the
+    file), before radiokit reads any header: a 2000 x 2000 frame of zeros, 8 MB in a file of a few
+    KB, took 21 MiB under a budget of 2 MiB before it was refused. The inflated size is counted in
+    pieces, none kept, and refused before pydicom takes it: under the budget (plus Python's own
+    allocations: a 1 MiB inflating piece at most, 10 %), and one line naming the file."""
+    import tracemalloc
+
+    path = _deflated_zeros(tmp_path / "bomb.dcm", 2000)
+    assert path.stat().st_size < 64 * 1024
+    budget = 2 * 2**20
+    tracemalloc.start()
+    try:
+        with pytest.raises(FormatError) as info:
+            read(path, budget=budget)
+        held = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert held < 1.1 * budget, held
+    assert re.search(r"bomb\.dcm: .*inflate.*over the memory budget", str(info.value)), str(info.value)
+    assert "\n" not in str(info.value)
+    np.testing.assert_array_equal(read(path, budget="64MiB").data[0], 0)  # one that fits reads
+
+
+def test_a_deflated_dicom_out_of_all_proportion_is_a_bomb_without_a_budget(tmp_path, monkeypatch):
+    """With no budget given, inflated data past 1:200 and past BOMB_FILE_BYTES (lowered here to
+    4 MiB, as the other bomb tests lower it) is refused as a decompression bomb, as every other
+    compressed format's: under a large machine's budget a 16 MB deflated DICOM of zeros inflated
+    to 16 GB. A noisy deflated frame of the same size still reads."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    from radiokit.io import _budget
+
+    monkeypatch.delenv(_budget.BUDGET_ENV, raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 4 * 2**20)
+    with pytest.raises(FormatError, match=r"zeros\.dcm: .*decompression bomb"):
+        read(_deflated_zeros(tmp_path / "zeros.dcm", 2000))
+    noisy = np.random.default_rng(4).integers(0, 4096, (2000, 2000)).astype(np.uint16)
+    path = _dicom(tmp_path / "noisy.dcm", noisy, syntax=DeflatedExplicitVRLittleEndian)
+    np.testing.assert_array_equal(read(path).data[0], noisy)
+
+
+def test_a_deflated_dicom_cut_short_is_said_truncated_in_one_line(tmp_path):
+    """Its deflate stream cut: zlib's own "Error -5 while decompressing data: incomplete or
+    truncated stream" was the message, through a catch-all."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    frame = np.random.default_rng(5).integers(0, 4096, (64, 64)).astype(np.uint16)
+    whole = _dicom(tmp_path / "whole.dcm", frame, syntax=DeflatedExplicitVRLittleEndian).read_bytes()
+    path = tmp_path / "cut.dcm"
+    path.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(FormatError, match=r"cut\.dcm: .*deflate.*truncated") as info:
+        read(path)
+    assert "Error -5" not in str(info.value) and "\n" not in str(info.value)
