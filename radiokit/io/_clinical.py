@@ -16,7 +16,7 @@ import numpy as np
 
 from radiokit._names import shown
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
+from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, human_bytes, memory_budget
 from radiokit.io._codecs import (
     check_dicom_proportion,
     compressed_frame,
@@ -515,7 +515,86 @@ def _frame_count(path, ds) -> int:
     return number
 
 
-def _read_dataset(path):
+def _file_meta_end(path) -> tuple[int, str | None]:
+    """Where a DICOM file's dataset begins (past its preamble and its file meta group, whose
+    elements are explicit VR little endian: PS3.10 7.1) and the group's TransferSyntaxUID (None
+    where there is none, or the group cannot be walked: pydicom then says what is wrong)."""
+    long_lengths = {b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"}
+    with open(path, "rb") as fh:
+        pos = 132 if fh.read(132)[128:132] == b"DICM" else 0
+        syntax = None
+        while True:
+            fh.seek(pos)
+            head = fh.read(12)
+            if len(head) < 8 or struct.unpack_from("<H", head)[0] != 2:
+                return pos, syntax
+            element, vr = struct.unpack_from("<H2s", head, 2)
+            if vr in long_lengths:
+                if len(head) < 12:
+                    return pos, None
+                start, length = pos + 12, struct.unpack_from("<I", head, 8)[0]
+            else:
+                start, length = pos + 8, struct.unpack_from("<H", head, 6)[0]
+            if element == 0x0010:
+                fh.seek(start)
+                syntax = fh.read(min(length, 64)).rstrip(b"\0 ").decode("ascii", "replace")
+            pos = start + length
+
+
+def _check_inflated(path, budget) -> None:
+    """Refuse a deflated DICOM whose dataset inflates past the budget, or out of all proportion
+    to its bytes (:func:`check_proportion`, where no budget was given), or whose deflate stream is
+    cut, before pydicom reads it. Why: pydicom inflates the whole dataset as it opens the file
+    (zlib.decompress of the rest of it: its output blocks, then their join, about three times the
+    inflated bytes beside the compressed ones: benchmarks/README.md), before any header can be
+    judged: an 8 KB file of a 2000 x 2000 frame of zeros took 21 MiB under a 2 MiB budget, and
+    deflate's 1:1000 made a 16 MB file 16 GB.
+    The stream is inflated here a piece at a time, counted and dropped (an extra pass over a
+    deflated file's bytes, the one syntax that needs it), and stops once past either limit."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    try:
+        start, syntax = _file_meta_end(path)
+    except (OSError, struct.error):
+        return
+    if syntax != DeflatedExplicitVRLittleEndian:
+        return
+    stored, inflated, piece = os.path.getsize(path) - start, 0, 2**20
+    inflater, limit = zlib.decompressobj(-zlib.MAX_WBITS), memory_budget(budget)
+
+    def count(data: bytes) -> None:
+        nonlocal inflated
+        while True:
+            out = len(inflater.decompress(data, piece))
+            inflated += out
+            if stored + 3 * inflated > limit:  # (counted no further: a bomb's whole size is not needed)
+                raise FormatError(
+                    path,
+                    f"a deflated DICOM file whose dataset inflates past {human_bytes(inflated)}, which pydicom holds "
+                    f"about three times over as it opens it, beside its {human_bytes(stored)}: over the memory "
+                    f"budget of {human_bytes(limit)} (a decompression bomb, or raise {BUDGET_ENV})",
+                )
+            check_proportion(path, "its deflated dataset", inflated, inflated, stored, "deflate", budget)
+            data = inflater.unconsumed_tail
+            if inflater.eof or (not data and out < piece):
+                return
+
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(start)
+            while not inflater.eof and (data := fh.read(piece)):
+                count(data)
+    except zlib.error as exc:
+        raise FormatError(path, f"a deflated DICOM file whose deflate stream is corrupt ({exc})") from None
+    if not inflater.eof:
+        raise FormatError(
+            path,
+            f"a deflated DICOM file whose deflate stream ends before its end marker ({os.path.getsize(path)} "
+            "bytes): truncated",
+        )
+
+
+def _read_dataset(path, budget=None):
     """The dataset, its pixels deferred, and whether its transfer syntax had to be found (no
     file meta). Without the preamble and b'DICM' (older tools, ACR-NEMA-era datasets) pydicom
     reads a file where told to (force=True), as a user would expect radiokit to; sniff let such a
@@ -525,6 +604,7 @@ def _read_dataset(path):
 
     with open(path, "rb") as fh:
         bare = fh.read(132)[128:132] != b"DICM"
+    _check_inflated(path, budget)
     try:
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
@@ -551,7 +631,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     """The dataset (pixel data deferred, not read), the frames' geometry and ``meta``; refused in
     one line where its pixels are absent, of a kind a radiograph is not (colour, float), in a
     transfer syntax pydicom cannot decode alone, or past the budget."""
-    ds, found = _read_dataset(path)
+    ds, found = _read_dataset(path, budget)
     syntax = _decodable_syntax(path, ds)
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
     n = _frame_count(path, ds)
