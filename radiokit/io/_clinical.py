@@ -711,10 +711,12 @@ def _check_dicom_budget(path, ds, syntax, n: int, rows: int, cols: int, dtype, r
 def _largest_frame_stream(path, ds, n: int) -> int:
     """A bound on the largest frame's codestream in an encapsulated pixel element, before any
     frame is read: the Extended Offset Table's lengths where given; else the fragments' lengths,
-    their item headers walked in the element (pydicom holds it from the open): one fragment a frame, its
-    own; the Basic Offset Table's starts, the spans between them; else all of them (one frame may
-    hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted 6 streams, three
-    times over (it holds three copies of the one it decodes), and a file that fits was refused.
+    their item headers walked in the element (pydicom holds it from the open): one fragment a
+    frame, its own; the Basic Offset Table's starts, the spans between them; without one, the
+    runs of fragments each closed by an end marker, as pydicom finds the frames; else all of them
+    (one frame may hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted
+    6 streams, three times over (it holds three copies of the one it decodes), and a file that
+    fits was refused (two fragments a frame without an offset table: review s56rvoff).
     A frame's own stream is held to the budget again as it is decoded."""
     size = os.path.getsize(path)
     lengths = ds.get("ExtendedOffsetTableLengths")
@@ -723,7 +725,7 @@ def _largest_frame_stream(path, ds, n: int) -> int:
     value = getattr(ds.get_item("PixelData"), "value", None)  # (pydicom reads an encapsulated element at open)
     if n == 1 or not isinstance(value, (bytes, bytearray)):
         return size
-    table, fragments, pos = None, [], 0
+    table, fragments, ended, pos = None, [], [], 0
     while pos + 8 <= len(value):
         group, element, length = struct.unpack_from("<HHI", value, pos)
         if (group, element) != (0xFFFE, 0xE000) or length == 0xFFFFFFFF:
@@ -732,6 +734,9 @@ def _largest_frame_stream(path, ds, n: int) -> int:
             table = value[pos + 8 : pos + 8 + min(length, 4 * n + 4)]
         else:
             fragments.append(length)
+            # pydicom's rule without an offset table: a frame ends at a fragment whose last 10
+            # bytes hold an end marker (EOI, EOC: 0xFFD9; a fragment's padding after it)
+            ended.append(b"\xff\xd9" in value[max(pos + 8, pos + 8 + length - 10) : pos + 8 + length])
         pos += 8 + length
     if not fragments:
         return size
@@ -741,6 +746,14 @@ def _largest_frame_stream(path, ds, n: int) -> int:
     if len(starts) == n and np.all(np.diff(starts) > 0):
         ends = np.append(starts[1:], sum(8 + length for length in fragments))
         return min(size, int((ends - starts).max()))
+    if not table and len(fragments) > n and sum(ended) >= n:
+        # (the fragments after the last marker are a frame too, as pydicom reads them)
+        frames, frame = [], 0
+        for length, last in zip(fragments, ended, strict=True):
+            frame += length
+            if last:
+                frames, frame = frames + [frame], 0
+        return max(frames + [frame])
     return min(size, sum(fragments))
 
 
