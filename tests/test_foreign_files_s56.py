@@ -173,3 +173,28 @@ def test_info_does_not_say_a_dicom_of_16_bits_stored_declares_no_depth(tmp_path)
     assert res.returncode == 0, res.stderr
     row = next(line for line in res.stdout.splitlines() if line.strip().startswith("saturated"))
     assert "declares no bit depth" not in row and "BitsStored 16" in row, row
+
+
+def test_a_dicom_with_a_character_set_cut_inside_its_header_is_said_to_be_truncated(tmp_path):
+    """As above, with a SpecificCharacterSet (which nearly every archive's file has) and a
+    sequence: pydicom decodes those as it reads, leaving them no offset, and the whole check gave
+    up at them, so such a file cut inside its header was "a report" again. The elements pydicom
+    kept raw still say where they end."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    code = Dataset()
+    code.CodeValue, code.CodingSchemeDesignator, code.CodeMeaning = "RPID1", "RADLEX", "chest"
+    whole = _dx(
+        tmp_path / "whole.dcm",
+        _counts(),
+        SpecificCharacterSet="ISO_IR 100",
+        ProcedureCodeSequence=Sequence([code]),
+        PatientName="Doe^Jane^Middle",
+    ).read_bytes()
+    cut = whole.index(b"Doe^Jane^Middle") + 5  # (inside an element after the two, before Rows)
+    path = tmp_path / "cut.dcm"
+    path.write_bytes(whole[:cut])
+    with pytest.raises(FormatError, match=r"cut\.dcm: .*truncated") as info:
+        read(path)
+    assert "report" not in str(info.value) and "\n" not in str(info.value)
