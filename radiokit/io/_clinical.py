@@ -808,6 +808,9 @@ def dicom_read_bytes(
         # the whole dataset inflated into one buffer, which pydicom keeps, and the element copied
         # out of it; then a frame's array
         element, work = 2 * n * frame, frame
+    elif syntax == uid.ExplicitVRBigEndian:
+        # the element, the frame's array copied out of it, and that array in the machine's order
+        element, work = n * frame, 2 * frame
     else:
         element, work = n * frame, frame  # the element, and the frame's array copied out of it
     rescaled = out if tuple(rescale) != (1, 0) else 0
