@@ -198,3 +198,16 @@ def test_a_dicom_with_a_character_set_cut_inside_its_header_is_said_to_be_trunca
     with pytest.raises(FormatError, match=r"cut\.dcm: .*truncated") as info:
         read(path)
     assert "report" not in str(info.value) and "\n" not in str(info.value)
+
+
+def test_info_gives_a_rescaled_dicom_s_padding_value_as_its_pixels_read(tmp_path):
+    """PixelPaddingValue is a stored value; a DICOM with a Modality LUT reads every pixel rescaled,
+    so the padded ones read as slope x value + intercept, which info must give beside the stored
+    value (it named the stored one alone: no pixel read holds it)."""
+    counts = _counts() % 4000
+    counts[:5] = 0  # the padded band
+    path = _dx(tmp_path / "padded.dcm", counts, PixelPaddingValue=0, RescaleSlope="2", RescaleIntercept="-1000")
+    got = read(path)
+    assert got.meta["pixel_padding"].startswith("PixelPaddingValue 0")
+    assert "-1000 as read" in got.meta["pixel_padding"], got.meta["pixel_padding"]
+    assert np.all(got.data[0, :5] == 2 * 0 - 1000)
