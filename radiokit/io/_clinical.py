@@ -702,7 +702,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if photometric == "MONOCHROME1":
         meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
         _say_inverted(path)
-    if (padding := _padding_note(ds)) is not None:
+    if (padding := _padding_note(ds, slope, intercept)) is not None:
         meta["pixel_padding"] = padding
     meta.update(_dicom_pitch(path, ds))
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
@@ -853,16 +853,21 @@ def _modality_lut(path, ds) -> tuple:
     return luts.pop() if luts else (1, 0, None)
 
 
-def _padding_note(ds) -> str | None:
+def _padding_note(ds, slope=1, intercept=0) -> str | None:
     """What a PixelPaddingValue (to PixelPaddingRangeLimit) says, for ``info``: those pixels hold
     no image (outside the collimated field), though they are read as stored, as pydicom reads
-    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so."""
+    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so.
+    The values are stored ones: with a Modality LUT, what its pixels read as is given beside them
+    (the stored value alone named a value no pixel read holds: review s56rvoff)."""
     value = ds.get("PixelPaddingValue")
     if value is None or value == "":
         return None
     limit = ds.get("PixelPaddingRangeLimit")
     ranged = limit not in (None, "")
-    span = f"PixelPaddingValue {value}" + (f" to {limit}" if ranged else "")
+    ends = [value, limit] if ranged else [value]
+    span = "PixelPaddingValue " + " to ".join(str(v) for v in ends)
+    if (slope, intercept) != (1, 0) and all(isinstance(v, (int, float)) for v in ends):
+        span += " (" + " to ".join(f"{v * slope + intercept:g}" for v in ends) + " as read, rescaled)"
     return (
         f"{span}: pixels of {'those values' if ranged else 'that value'} hold no image (outside the collimated "
         "field); read as stored, and counted in the range and saturation above"
