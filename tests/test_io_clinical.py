@@ -1009,3 +1009,30 @@ def test_a_big_endian_dicom_s_budget_counts_its_byte_swapped_copy(tmp_path):
     with pytest.raises(FormatError, match=r"be\.dcm: .*over the memory budget"):
         read(path, budget=int(0.9 * peak))
     np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data[0], image)
+
+
+def test_a_multi_frame_dicom_streamed_is_not_charged_the_stack_it_never_holds(tmp_path):
+    """open_frames reads a stack a frame at a time: a DICOM streamed holds its pixel element
+    (pydicom reads it whole) and one frame, never the stack. Its open was charged the stack too,
+    and a file that streams under a budget 10 % over its traced peak was refused; read() holds
+    the stack as well, and is still refused under that budget."""
+    import tracemalloc
+
+    frames = np.random.default_rng(12).integers(0, 4096, (16, 256, 256)).astype(np.uint16)
+    path = _dicom(tmp_path / "stack.dcm", frames, bits_stored=12)
+
+    def stream(budget=None):
+        with open_frames(path, budget=budget) as src:
+            for i, frame in enumerate(src):
+                np.testing.assert_array_equal(frame, frames[i])
+
+    stream()  # (its modules imported before the peak is traced)
+    tracemalloc.start()
+    try:
+        stream()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    stream(budget=int(1.1 * peak))
+    with pytest.raises(FormatError, match=r"stack\.dcm: .*over the memory budget"):
+        read(path, budget=int(1.1 * peak))
