@@ -1036,3 +1036,38 @@ def test_a_multi_frame_dicom_streamed_is_not_charged_the_stack_it_never_holds(tm
     stream(budget=int(1.1 * peak))
     with pytest.raises(FormatError, match=r"stack\.dcm: .*over the memory budget"):
         read(path, budget=int(1.1 * peak))
+
+
+def test_a_deflated_dicom_whose_file_meta_is_implicit_vr_is_held_to_the_budget_too(tmp_path):
+    """A writer's file meta in implicit VR (against PS3.10, which pydicom reads all the same): its
+    elements have no VR, and the walk to the deflated dataset stopped at the first, so the bomb
+    check was passed over and pydicom inflated the whole dataset (21 MiB under a 2 MiB budget)."""
+    import tracemalloc
+
+    import pydicom
+
+    path = _deflated_zeros(tmp_path / "bomb.dcm", 2000)
+    whole, meta = path.read_bytes(), pydicom.dcmread(path).file_meta
+    elements = b""
+    for element in meta:
+        if element.tag != 0x00020000:
+            value = element.value if isinstance(element.value, bytes) else str(element.value).encode()
+            value += b"\0" * (len(value) % 2)
+            elements += struct.pack("<HHI", element.tag.group, element.tag.elem, len(value)) + value
+    explicit_end = 132 + 12 + meta.FileMetaInformationGroupLength
+    implicit = tmp_path / "implicit.dcm"
+    implicit.write_bytes(
+        whole[:132] + struct.pack("<HHII", 2, 0, 4, len(elements)) + elements + whole[explicit_end:]
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (pydicom's "Expected explicit VR, but found implicit VR")
+        assert pydicom.dcmread(implicit).file_meta.TransferSyntaxUID == meta.TransferSyntaxUID
+        read(implicit)  # (its modules imported before the peak is traced)
+        tracemalloc.start()
+        try:
+            with pytest.raises(FormatError, match=r"implicit\.dcm: .*inflate.*over the memory budget"):
+                read(implicit, budget=2 * 2**20)
+            held = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert held < 1.1 * 2 * 2**20, held
