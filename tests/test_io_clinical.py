@@ -1056,9 +1056,7 @@ def test_a_deflated_dicom_whose_file_meta_is_implicit_vr_is_held_to_the_budget_t
             elements += struct.pack("<HHI", element.tag.group, element.tag.elem, len(value)) + value
     explicit_end = 132 + 12 + meta.FileMetaInformationGroupLength
     implicit = tmp_path / "implicit.dcm"
-    implicit.write_bytes(
-        whole[:132] + struct.pack("<HHII", 2, 0, 4, len(elements)) + elements + whole[explicit_end:]
-    )
+    implicit.write_bytes(whole[:132] + struct.pack("<HHII", 2, 0, 4, len(elements)) + elements + whole[explicit_end:])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # (pydicom's "Expected explicit VR, but found implicit VR")
         assert pydicom.dcmread(implicit).file_meta.TransferSyntaxUID == meta.TransferSyntaxUID

@@ -518,8 +518,9 @@ def _frame_count(path, ds) -> int:
 
 def _file_meta_end(path) -> tuple[int, str | None]:
     """Where a DICOM file's dataset begins (past its preamble and its file meta group, whose
-    elements are explicit VR little endian: PS3.10 7.1) and the group's TransferSyntaxUID (None
-    where there is none, or the group cannot be walked: pydicom then says what is wrong)."""
+    elements are explicit VR little endian: PS3.10 7.1, or implicit VR where a writer erred, as
+    pydicom reads them) and the group's TransferSyntaxUID (None where there is none, or the group
+    cannot be walked: pydicom then says what is wrong)."""
     long_lengths = {b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"}
     with open(path, "rb") as fh:
         pos = 132 if fh.read(132)[128:132] == b"DICM" else 0
@@ -530,7 +531,9 @@ def _file_meta_end(path) -> tuple[int, str | None]:
             if len(head) < 8 or struct.unpack_from("<H", head)[0] != 2:
                 return pos, syntax
             element, vr = struct.unpack_from("<H2s", head, 2)
-            if vr in long_lengths:
+            if not (vr.isalpha() and vr.isupper()):  # implicit VR, as a writer may (pydicom reads it)
+                start, length = pos + 8, struct.unpack_from("<I", head, 4)[0]
+            elif vr in long_lengths:
                 if len(head) < 12:
                     return pos, None
                 start, length = pos + 12, struct.unpack_from("<I", head, 8)[0]
