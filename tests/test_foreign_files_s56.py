@@ -211,3 +211,24 @@ def test_info_gives_a_rescaled_dicom_s_padding_value_as_its_pixels_read(tmp_path
     assert got.meta["pixel_padding"].startswith("PixelPaddingValue 0")
     assert "-1000 as read" in got.meta["pixel_padding"], got.meta["pixel_padding"]
     assert np.all(got.data[0, :5] == 2 * 0 - 1000)
+
+
+def test_an_mr_spectroscopy_file_is_not_called_truncated(tmp_path):
+    """An MR Spectroscopy object has Rows and Columns (its voxel grid) and SpectroscopyData, never
+    pixels: a whole, valid file was said to be "truncated before its pixels, or they were removed"."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.4.2"  # MR Spectroscopy Storage
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "MR"
+    ds.Rows, ds.Columns, ds.DataPointRows, ds.DataPointColumns = 1, 1, 1, 256
+    ds.SpectroscopyData = np.zeros(512, "<f4").tobytes()
+    ds.save_as(tmp_path / "mrs.dcm", enforce_file_format=True)
+    with pytest.raises(FormatError, match=r"mrs\.dcm: .*SpectroscopyData") as info:
+        read(tmp_path / "mrs.dcm")
+    assert "truncated" not in str(info.value) and "\n" not in str(info.value)
