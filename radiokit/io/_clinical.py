@@ -455,6 +455,10 @@ def _decodable_syntax(path, ds):
     if "PixelData" not in ds:
         other = [k for k in ("FloatPixelData", "DoubleFloatPixelData") if k in ds]
         _check_not_cut(path, ds)
+        if "SpectroscopyData" in ds:  # (its Rows and Columns are a voxel grid, not a cut image's)
+            raise FormatError(
+                path, "a DICOM file of SpectroscopyData (MR spectra, not an image), which radiokit does not read"
+            )
         what = f"its pixels are {other[0]}, which radiokit does not read" if other else "it has no pixel data"
         if not other and "Rows" in ds and "Columns" in ds:
             # (a cut at an element's boundary leaves a shorter file of whole elements)
