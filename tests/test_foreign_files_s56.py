@@ -232,3 +232,17 @@ def test_an_mr_spectroscopy_file_is_not_called_truncated(tmp_path):
     with pytest.raises(FormatError, match=r"mrs\.dcm: .*SpectroscopyData") as info:
         read(tmp_path / "mrs.dcm")
     assert "truncated" not in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_high_bit_refusal_does_not_tell_a_low_bit_file_to_shift_its_counts_away(tmp_path):
+    """HighBit 15 over BitsStored 12 is either ACR-NEMA's top-bit layout or a writer's mislabel
+    of counts kept in the low bits (which pydicom reads by masking, and radiokit read before). The
+    refusal told every such file to shift each word right by 4 bits: done to a mislabelled one,
+    that throws away its counts' low 4 bits. It must name both cases and how to tell them apart."""
+    counts = _counts()  # (every word below 4096: the low-bit layout)
+    path = _dx(tmp_path / "mislabel.dcm", counts, high_bit=15)
+    with pytest.raises(FormatError, match=r"mislabel\.dcm: .*HighBit 15") as info:
+        read(path)
+    said = str(info.value)
+    assert "every word below 4096" in said and "set HighBit 11" in said, said
+    assert "\n" not in said
