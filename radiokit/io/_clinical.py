@@ -912,15 +912,19 @@ def _check_high_bit(path, ds, stored: int) -> None:
     if value in (None, "") or int(value) == stored - 1:
         return
     high = int(value)
+    # (a writer that kept its counts in the low bits and mislabelled HighBit is told apart by the
+    # words, not the header: shifted, such counts would lose their low bits)
     advice = (
-        f"shift each word right by {high + 1 - stored} bits and set HighBit {stored - 1}"
+        f"if its counts are in each word's top bits (its low {high + 1 - stored} bits zero), shift each word right "
+        f"by {high + 1 - stored} bits and set HighBit {stored - 1}; with every word below {1 << stored}, its "
+        f"counts are in the low bits and HighBit alone is wrong: set HighBit {stored - 1}"
         if high >= stored
         else "a HighBit below them is no layout: its header is wrong"
     )
     raise FormatError(
         path,
-        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts are not the low bits "
-        f"of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
+        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts may not be the low "
+        f"bits of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
     )
 
 
