@@ -578,7 +578,7 @@ def _check_inflated(path, budget) -> None:
     beside the compressed bytes), before any header can be judged: an 8 KB file of a 2000 x 2000
     frame of zeros took 21 MiB under a 2 MiB budget, and deflate's 1:1000 made a 16 MB file 16 GB.
     The stream is inflated here a piece at a time, counted and dropped (an extra pass over a
-    deflated file's bytes, the one syntax that needs it), and stops once past either limit."""
+    deflated file's bytes, the one syntax that needs it), and stops once past the budget."""
     from pydicom.uid import DeflatedExplicitVRLittleEndian
 
     try:
@@ -602,7 +602,6 @@ def _check_inflated(path, budget) -> None:
                     f"two to three times over as it opens it, beside its {human_bytes(stored)}: over the memory "
                     f"budget of {human_bytes(limit)} (a decompression bomb, or raise {BUDGET_ENV})",
                 )
-            check_proportion(path, "its deflated dataset", inflated, inflated, stored, "deflate", budget)
             data = inflater.unconsumed_tail
             if inflater.eof or (not data and out < piece):
                 return
@@ -620,6 +619,10 @@ def _check_inflated(path, budget) -> None:
             f"a deflated DICOM file whose deflate stream ends before its end marker ({os.path.getsize(path)} "
             "bytes): truncated",
         )
+    # (judged once the whole is counted, so that its figures are the dataset's, not a piece's)
+    # (the budget it suggests: the open's inflate, and the read's inflated dataset and element beside the stack)
+    needs = stored + _inflated_held(inflated) + 2 * inflated
+    check_proportion(path, "its deflated dataset", inflated, inflated, stored, "deflate", budget, needs)
 
 
 def _read_dataset(path, budget=None):
