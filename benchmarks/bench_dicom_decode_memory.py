@@ -125,6 +125,8 @@ else:
     ds, geo, _ = open_dicom(big, None)
 if geo is None:
     pass
+elif "stack" in geo:  # read(): the stack beside the element and a frame's decoding (review s56rvoff)
+    counted = geo["held"] + geo["stack"] + geo["work"] + geo["rescale_bytes"]
 elif "held" in geo:
     counted = geo["held"] + geo["rescale_bytes"] + _clinical.dicom_read_bytes(
         big, ds.file_meta.TransferSyntaxUID, geo["n"], geo["rows"], geo["cols"], geo["dtype"],

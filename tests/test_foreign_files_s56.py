@@ -173,3 +173,76 @@ def test_info_does_not_say_a_dicom_of_16_bits_stored_declares_no_depth(tmp_path)
     assert res.returncode == 0, res.stderr
     row = next(line for line in res.stdout.splitlines() if line.strip().startswith("saturated"))
     assert "declares no bit depth" not in row and "BitsStored 16" in row, row
+
+
+def test_a_dicom_with_a_character_set_cut_inside_its_header_is_said_to_be_truncated(tmp_path):
+    """As above, with a SpecificCharacterSet (which nearly every archive's file has) and a
+    sequence: pydicom decodes those as it reads, leaving them no offset, and the whole check gave
+    up at them, so such a file cut inside its header was "a report" again. The elements pydicom
+    kept raw still say where they end."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    code = Dataset()
+    code.CodeValue, code.CodingSchemeDesignator, code.CodeMeaning = "RPID1", "RADLEX", "chest"
+    whole = _dx(
+        tmp_path / "whole.dcm",
+        _counts(),
+        SpecificCharacterSet="ISO_IR 100",
+        ProcedureCodeSequence=Sequence([code]),
+        PatientName="Doe^Jane^Middle",
+    ).read_bytes()
+    cut = whole.index(b"Doe^Jane^Middle") + 5  # (inside an element after the two, before Rows)
+    path = tmp_path / "cut.dcm"
+    path.write_bytes(whole[:cut])
+    with pytest.raises(FormatError, match=r"cut\.dcm: .*truncated") as info:
+        read(path)
+    assert "report" not in str(info.value) and "\n" not in str(info.value)
+
+
+def test_info_gives_a_rescaled_dicom_s_padding_value_as_its_pixels_read(tmp_path):
+    """PixelPaddingValue is a stored value; a DICOM with a Modality LUT reads every pixel rescaled,
+    so the padded ones read as slope x value + intercept, which info must give beside the stored
+    value (it named the stored one alone: no pixel read holds it)."""
+    counts = _counts() % 4000
+    counts[:5] = 0  # the padded band
+    path = _dx(tmp_path / "padded.dcm", counts, PixelPaddingValue=0, RescaleSlope="2", RescaleIntercept="-1000")
+    got = read(path)
+    assert got.meta["pixel_padding"].startswith("PixelPaddingValue 0")
+    assert "-1000 as read" in got.meta["pixel_padding"], got.meta["pixel_padding"]
+    assert np.all(got.data[0, :5] == 2 * 0 - 1000)
+
+
+def test_an_mr_spectroscopy_file_is_not_called_truncated(tmp_path):
+    """An MR Spectroscopy object has Rows and Columns (its voxel grid) and SpectroscopyData, never
+    pixels: a whole, valid file was said to be "truncated before its pixels, or they were removed"."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.4.2"  # MR Spectroscopy Storage
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "MR"
+    ds.Rows, ds.Columns, ds.DataPointRows, ds.DataPointColumns = 1, 1, 1, 256
+    ds.SpectroscopyData = np.zeros(512, "<f4").tobytes()
+    ds.save_as(tmp_path / "mrs.dcm", enforce_file_format=True)
+    with pytest.raises(FormatError, match=r"mrs\.dcm: .*SpectroscopyData") as info:
+        read(tmp_path / "mrs.dcm")
+    assert "truncated" not in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_high_bit_refusal_does_not_tell_a_low_bit_file_to_shift_its_counts_away(tmp_path):
+    """HighBit 15 over BitsStored 12 is either ACR-NEMA's top-bit layout or a writer's mislabel
+    of counts kept in the low bits (which pydicom reads by masking, and radiokit read before). The
+    refusal told every such file to shift each word right by 4 bits: done to a mislabelled one,
+    that throws away its counts' low 4 bits. It must name both cases and how to tell them apart."""
+    counts = _counts()  # (every word below 4096: the low-bit layout)
+    path = _dx(tmp_path / "mislabel.dcm", counts, high_bit=15)
+    with pytest.raises(FormatError, match=r"mislabel\.dcm: .*HighBit 15") as info:
+        read(path)
+    said = str(info.value)
+    assert "every word below 4096" in said and "set HighBit 11" in said, said
+    assert "\n" not in said

@@ -917,3 +917,160 @@ def test_the_png_handed_to_opencv_keeps_each_idat_within_a_chunk_s_most(tmp_path
             lengths.append(length)
         pos += 12 + length
     assert len(lengths) >= 4 and max(lengths) <= most, lengths
+
+
+def _deflated_zeros(path, side):
+    """A deflated DICOM of one ``side`` x ``side`` frame of zeros (deflate's 1:1000 of a constant
+    image: a few KB of file)."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    return _dicom(path, np.zeros((side, side), np.uint16), syntax=DeflatedExplicitVRLittleEndian)
+
+
+def test_a_deflated_dicom_is_refused_by_the_budget_before_it_is_inflated(tmp_path):
+    """pydicom inflates a deflated dataset whole as it opens it (zlib.decompress of the rest of the
+    file), before radiokit reads any header: a 2000 x 2000 frame of zeros, 8 MB in a file of a few
+    KB, took 21 MiB under a budget of 2 MiB before it was refused. The inflated size is counted in
+    pieces, none kept, and refused before pydicom takes it: under the budget (plus Python's own
+    allocations: a 1 MiB inflating piece at most, 10 %), and one line naming the file."""
+    import tracemalloc
+
+    path = _deflated_zeros(tmp_path / "bomb.dcm", 2000)
+    assert path.stat().st_size < 64 * 1024
+    budget = 2 * 2**20
+    tracemalloc.start()
+    try:
+        with pytest.raises(FormatError) as info:
+            read(path, budget=budget)
+        held = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert held < 1.1 * budget, held
+    assert re.search(r"bomb\.dcm: .*inflate.*over the memory budget", str(info.value)), str(info.value)
+    assert "\n" not in str(info.value)
+    np.testing.assert_array_equal(read(path, budget="64MiB").data[0], 0)  # one that fits reads
+
+
+def test_a_deflated_dicom_out_of_all_proportion_is_a_bomb_without_a_budget(tmp_path, monkeypatch):
+    """With no budget given, inflated data past 1:200 and past BOMB_FILE_BYTES (lowered here to
+    2 MiB, as the other bomb tests lower it) is refused as a decompression bomb, as every other
+    compressed format's: under a large machine's budget a 16 MB deflated DICOM of zeros inflated
+    to 16 GB. A noisy deflated frame of the same size still reads."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    from radiokit.io import _budget
+
+    monkeypatch.delenv(_budget.BUDGET_ENV, raising=False)
+    monkeypatch.setattr(_budget, "BOMB_FILE_BYTES", 2 * 2**20)
+    zeros = _deflated_zeros(tmp_path / "zeros.dcm", 1100)  # (2.4 MB inflated)
+    with pytest.raises(FormatError, match=r"zeros\.dcm: .*decompression bomb") as info:
+        read(zeros)
+    assert "\n" not in str(info.value)
+    # the budget it suggests reads it (the inflate holds two to three times the dataset: a
+    # quarter over the dataset alone was refused again, by the budget)
+    suggested = re.search(r"RADIOKIT_MEMORY_BUDGET=(\w+)", str(info.value)).group(1)
+    np.testing.assert_array_equal(read(zeros, budget=suggested).data[0], 0)
+    noisy = np.random.default_rng(4).integers(0, 4096, (1100, 1100)).astype(np.uint16)
+    path = _dicom(tmp_path / "noisy.dcm", noisy, syntax=DeflatedExplicitVRLittleEndian)
+    np.testing.assert_array_equal(read(path).data[0], noisy)
+
+
+def test_a_deflated_dicom_cut_short_is_said_truncated_in_one_line(tmp_path):
+    """Its deflate stream cut: zlib's own "Error -5 while decompressing data: incomplete or
+    truncated stream" was the message, through a catch-all."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    frame = np.random.default_rng(5).integers(0, 4096, (64, 64)).astype(np.uint16)
+    whole = _dicom(tmp_path / "whole.dcm", frame, syntax=DeflatedExplicitVRLittleEndian).read_bytes()
+    path = tmp_path / "cut.dcm"
+    path.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(FormatError, match=r"cut\.dcm: .*deflate.*truncated") as info:
+        read(path)
+    assert "Error -5" not in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_big_endian_dicom_s_budget_counts_its_byte_swapped_copy(tmp_path):
+    """A big-endian frame is copied to the machine's byte order as pydicom decodes it: one more
+    frame held beside the frame read than a little-endian file's, which the budget did not count
+    (0.75 of the traced peak for one frame). Refused 10 % under the peak, read 10 % over it."""
+    import tracemalloc
+
+    import pydicom
+    from pydicom.uid import ExplicitVRBigEndian
+
+    image = np.random.default_rng(11).integers(0, 4096, (512, 512)).astype(np.uint16)
+    path = _dicom(tmp_path / "be.dcm", image, bits_stored=12)
+    ds = pydicom.dcmread(path)
+    ds.file_meta.TransferSyntaxUID = ExplicitVRBigEndian
+    ds.PixelData = image.astype(">u2").tobytes()
+    pydicom.dcmwrite(path, ds, little_endian=False, implicit_vr=False, enforce_file_format=True)
+    read(path)  # (its modules imported before the peak is traced)
+    tracemalloc.start()
+    try:
+        read(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    with pytest.raises(FormatError, match=r"be\.dcm: .*over the memory budget"):
+        read(path, budget=int(0.9 * peak))
+    np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data[0], image)
+
+
+def test_a_multi_frame_dicom_streamed_is_not_charged_the_stack_it_never_holds(tmp_path):
+    """open_frames reads a stack a frame at a time: a DICOM streamed holds its pixel element
+    (pydicom reads it whole) and one frame, never the stack. Its open was charged the stack too,
+    and a file that streams under a budget 10 % over its traced peak was refused; read() holds
+    the stack as well, and is still refused under that budget."""
+    import tracemalloc
+
+    frames = np.random.default_rng(12).integers(0, 4096, (16, 256, 256)).astype(np.uint16)
+    path = _dicom(tmp_path / "stack.dcm", frames, bits_stored=12)
+
+    def stream(budget=None):
+        with open_frames(path, budget=budget) as src:
+            for i, frame in enumerate(src):
+                np.testing.assert_array_equal(frame, frames[i])
+
+    stream()  # (its modules imported before the peak is traced)
+    tracemalloc.start()
+    try:
+        stream()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    stream(budget=int(1.1 * peak))
+    with pytest.raises(FormatError, match=r"stack\.dcm: .*over the memory budget"):
+        read(path, budget=int(1.1 * peak))
+
+
+def test_a_deflated_dicom_whose_file_meta_is_implicit_vr_is_held_to_the_budget_too(tmp_path):
+    """A writer's file meta in implicit VR (against PS3.10, which pydicom reads all the same): its
+    elements have no VR, and the walk to the deflated dataset stopped at the first, so the bomb
+    check was passed over and pydicom inflated the whole dataset (21 MiB under a 2 MiB budget)."""
+    import tracemalloc
+
+    import pydicom
+
+    path = _deflated_zeros(tmp_path / "bomb.dcm", 2000)
+    whole, meta = path.read_bytes(), pydicom.dcmread(path).file_meta
+    elements = b""
+    for element in meta:
+        if element.tag != 0x00020000:
+            value = element.value if isinstance(element.value, bytes) else str(element.value).encode()
+            value += b"\0" * (len(value) % 2)
+            elements += struct.pack("<HHI", element.tag.group, element.tag.elem, len(value)) + value
+    explicit_end = 132 + 12 + meta.FileMetaInformationGroupLength
+    implicit = tmp_path / "implicit.dcm"
+    implicit.write_bytes(whole[:132] + struct.pack("<HHII", 2, 0, 4, len(elements)) + elements + whole[explicit_end:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (pydicom's "Expected explicit VR, but found implicit VR")
+        assert pydicom.dcmread(implicit).file_meta.TransferSyntaxUID == meta.TransferSyntaxUID
+        read(implicit)  # (its modules imported before the peak is traced)
+        tracemalloc.start()
+        try:
+            with pytest.raises(FormatError, match=r"implicit\.dcm: .*inflate.*over the memory budget"):
+                read(implicit, budget=2 * 2**20)
+            held = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    assert held < 1.1 * 2 * 2**20, held

@@ -715,3 +715,26 @@ def test_a_multi_frame_compressed_dicom_is_charged_its_largest_frame_s_stream_no
     np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data, frames)
     with pytest.raises(FormatError, match=rf"{name}\.dcm: .*over the memory budget"):
         read(path, budget=int(0.9 * peak))
+
+
+def test_a_multi_frame_dicom_of_several_fragments_a_frame_without_an_offset_table_is_charged_one_frame(tmp_path):
+    """Frames of two fragments each, the Basic Offset Table empty (as the standard allows): pydicom
+    finds each frame's end at the fragment that ends in an EOI marker, and the budget at open
+    counted every fragment as one frame's stream (the whole file, three times over for a JPEG),
+    refusing under a budget 1.3 times the peak a file that the one-fragment layout reads under 1.1."""
+    import pydicom
+    from pydicom.encaps import encapsulate
+
+    rng = np.random.default_rng(9)
+    y, x = np.mgrid[:512, :512]
+    frames = np.stack(
+        [np.clip(2000 + 800 * np.sin(x / (40 + k)) + rng.normal(0, 30, x.shape), 0, 4095) for k in range(6)]
+    ).astype(np.uint16)
+    syntax, encode = LOSSLESS["sv1"]
+    streams = [encode(f) for f in frames]
+    path = _dicom(tmp_path / "two.dcm", frames, syntax, encode)
+    ds = pydicom.dcmread(path)
+    ds.PixelData = encapsulate(streams, fragments_per_frame=2, has_bot=False)
+    ds.save_as(path)
+    peak = _traced_peak(path)
+    np.testing.assert_array_equal(read(path, budget=int(1.1 * peak)).data, frames)

@@ -260,7 +260,9 @@ def stored_extent(ranges) -> int:
     return total
 
 
-def check_proportion(path, what: str, decoded: int, frame: int, stored: int, codec: str, budget=None) -> None:
+def check_proportion(
+    path, what: str, decoded: int, frame: int, stored: int, codec: str, budget=None, needs: int | None = None
+) -> None:
     """Refuse compressed data out of all proportion to the bytes it is stored in, before decoding.
 
     ``decoded`` bytes (``frame`` of them the largest one decode allocates at once) from ``stored``
@@ -268,7 +270,9 @@ def check_proportion(path, what: str, decoded: int, frame: int, stored: int, cod
     :data:`BOMB_FRAME_BYTES` a frame or :data:`BOMB_FILE_BYTES` in all (the module's comment gives
     the measurements), unless the user gave a budget (:func:`explicit_budget`). Readers pass what
     one read decodes: a frame streamed, or every frame ``read()`` takes, and ``stored`` counting
-    each stored byte once (:func:`stored_extent`).
+    each stored byte once (:func:`stored_extent`). ``needs``: what reading it takes, where more
+    than ``decoded`` (a deflated DICOM's inflate holds it two to three times), for the budget the
+    refusal suggests.
     """
     if not stored or decoded <= BOMB_RATIO * stored or not proportion_can_refuse(decoded, frame, budget):
         return
@@ -278,5 +282,5 @@ def check_proportion(path, what: str, decoded: int, frame: int, stored: int, cod
         f"(1:{decoded // stored}): past 1:{BOMB_RATIO} frames are nearly constant or sparse (noisy ones "
         "compress 1:1.2-1:19, with 1 % of pixels hit 1:78-1:113, with 0.2 % up to 1:385), and so much of "
         f"them is taken for a decompression bomb; to read it all the same, give the memory it may use: "
-        f"{BUDGET_ENV}={_suggested(decoded)} (read(..., budget=...))",
+        f"{BUDGET_ENV}={_suggested(needs or decoded)} (read(..., budget=...))",
     )

@@ -16,7 +16,7 @@ import numpy as np
 
 from radiokit._names import shown
 from radiokit.errors import FormatError
-from radiokit.io._budget import check_budget
+from radiokit.io._budget import BUDGET_ENV, check_budget, check_proportion, human_bytes, memory_budget
 from radiokit.io._codecs import (
     check_dicom_proportion,
     compressed_frame,
@@ -423,9 +423,10 @@ def _check_not_cut(path, ds) -> None:
     """Refuse, as truncated, a DICOM whose last element (or whose file meta) runs past the file's
     end. Why: pydicom keeps the elements it read and drops a cut one without a word, and a file
     cut before its pixel data was called "a report, structured data or a header only". The
-    elements' offsets are pydicom's (read, not yet decoded): an element already decoded, or one
-    of undefined length (a sequence), leaves the end unknown and the file as it was said, as does
-    a deflated dataset (offsets in its inflated bytes)."""
+    elements' offsets are pydicom's (read, not yet decoded): an element already decoded (the
+    SpecificCharacterSet, a sequence) or of undefined length says nothing of where it ends, and is
+    passed over (giving up there missed every archive's cut file: review s56rvoff); a deflated
+    dataset's offsets are in its inflated bytes, and say nothing of the file."""
     from pydicom.uid import DeflatedExplicitVRLittleEndian
 
     meta = getattr(ds, "file_meta", None) or {}
@@ -438,7 +439,7 @@ def _check_not_cut(path, ds) -> None:
         item = ds.get_item(tag)
         tell, length = getattr(item, "value_tell", None), getattr(item, "length", None)
         if tell is None or length is None or length == 0xFFFFFFFF:
-            return
+            continue  # (its own end unknown; the others' offsets are the file's all the same)
         ends.append(tell + length)
     if ends and max(ends) > size:
         raise FormatError(
@@ -454,6 +455,10 @@ def _decodable_syntax(path, ds):
     if "PixelData" not in ds:
         other = [k for k in ("FloatPixelData", "DoubleFloatPixelData") if k in ds]
         _check_not_cut(path, ds)
+        if "SpectroscopyData" in ds:  # (its Rows and Columns are a voxel grid, not a cut image's)
+            raise FormatError(
+                path, "a DICOM file of SpectroscopyData (MR spectra, not an image), which radiokit does not read"
+            )
         what = f"its pixels are {other[0]}, which radiokit does not read" if other else "it has no pixel data"
         if not other and "Rows" in ds and "Columns" in ds:
             # (a cut at an element's boundary leaves a shorter file of whole elements)
@@ -515,7 +520,112 @@ def _frame_count(path, ds) -> int:
     return number
 
 
-def _read_dataset(path):
+def _file_meta_end(path) -> tuple[int, str | None]:
+    """Where a DICOM file's dataset begins (past its preamble and its file meta group, whose
+    elements are explicit VR little endian: PS3.10 7.1, or implicit VR where a writer erred, as
+    pydicom reads them) and the group's TransferSyntaxUID (None where there is none, or the group
+    cannot be walked: pydicom then says what is wrong)."""
+    long_lengths = {b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"}
+    with open(path, "rb") as fh:
+        pos = 132 if fh.read(132)[128:132] == b"DICM" else 0
+        syntax = None
+        while True:
+            fh.seek(pos)
+            head = fh.read(12)
+            if len(head) < 8 or struct.unpack_from("<H", head)[0] != 2:
+                return pos, syntax
+            element, vr = struct.unpack_from("<H2s", head, 2)
+            if not (vr.isalpha() and vr.isupper()):  # implicit VR, as a writer may (pydicom reads it)
+                start, length = pos + 8, struct.unpack_from("<I", head, 4)[0]
+            elif vr in long_lengths:
+                if len(head) < 12:
+                    return pos, None
+                start, length = pos + 12, struct.unpack_from("<I", head, 8)[0]
+            else:
+                start, length = pos + 8, struct.unpack_from("<H", head, 6)[0]
+            if element == 0x0010:
+                fh.seek(start)
+                syntax = fh.read(min(length, 64)).rstrip(b"\0 ").decode("ascii", "replace")
+            pos = start + length
+
+
+# CPython's zlib.decompress writes its output into blocks of these sizes (then 256 MiB each),
+# and joins them into one bytes object at the end (Include/internal/pycore_blocks_output_buffer.h)
+_ZLIB_BLOCKS = tuple(k * 2**10 for k in (32, 64, 256)) + tuple(
+    m * 2**20 for m in (1, 4, 8, 16, 16, 32, 32, 32, 32, 64, 64, 128, 128, 256)
+)
+
+
+def _inflated_held(inflated: int) -> int:
+    """What ``zlib.decompress`` holds at its peak to give ``inflated`` bytes: the blocks it wrote
+    them into (the last one part-filled) and their join (benchmarks/README.md: 1.00 of the peak
+    traced at pydicom's open)."""
+    blocks = 0
+    for size in _ZLIB_BLOCKS:
+        if blocks >= inflated:
+            break
+        blocks += size
+    if blocks < inflated:
+        blocks += -(-(inflated - blocks) // _ZLIB_BLOCKS[-1]) * _ZLIB_BLOCKS[-1]
+    return blocks + inflated
+
+
+def _check_inflated(path, budget) -> None:
+    """Refuse a deflated DICOM whose dataset inflates past the budget, or out of all proportion
+    to its bytes (:func:`check_proportion`, where no budget was given), or whose deflate stream is
+    cut, before pydicom reads it. Why: pydicom inflates the whole dataset as it opens the file
+    (zlib.decompress of the rest of it: its output blocks, then their join, :func:`_inflated_held`,
+    beside the compressed bytes), before any header can be judged: an 8 KB file of a 2000 x 2000
+    frame of zeros took 21 MiB under a 2 MiB budget, and deflate's 1:1000 made a 16 MB file 16 GB.
+    The stream is inflated here a piece at a time, counted and dropped (an extra pass over a
+    deflated file's bytes, the one syntax that needs it), and stops once past the budget."""
+    from pydicom.uid import DeflatedExplicitVRLittleEndian
+
+    try:
+        start, syntax = _file_meta_end(path)
+    except (OSError, struct.error):
+        return
+    if syntax != DeflatedExplicitVRLittleEndian:
+        return
+    stored, inflated, piece = os.path.getsize(path) - start, 0, 2**20
+    inflater, limit = zlib.decompressobj(-zlib.MAX_WBITS), memory_budget(budget)
+
+    def count(data: bytes) -> None:
+        nonlocal inflated
+        while True:
+            out = len(inflater.decompress(data, piece))
+            inflated += out
+            if stored + _inflated_held(inflated) > limit:  # (counted no further: a bomb's whole size is not needed)
+                raise FormatError(
+                    path,
+                    f"a deflated DICOM file whose dataset inflates past {human_bytes(inflated)}, which pydicom holds "
+                    f"two to three times over as it opens it, beside its {human_bytes(stored)}: over the memory "
+                    f"budget of {human_bytes(limit)} (a decompression bomb, or raise {BUDGET_ENV})",
+                )
+            data = inflater.unconsumed_tail
+            if inflater.eof or (not data and out < piece):
+                return
+
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(start)
+            while not inflater.eof and (data := fh.read(piece)):
+                count(data)
+    except zlib.error as exc:
+        raise FormatError(path, f"a deflated DICOM file whose deflate stream is corrupt ({exc})") from None
+    if not inflater.eof:
+        raise FormatError(
+            path,
+            f"a deflated DICOM file whose deflate stream ends before its end marker ({os.path.getsize(path)} "
+            "bytes): truncated",
+        )
+    # (judged once the whole is counted, so that its figures are the dataset's, not a piece's)
+    # (the budget it suggests: the open's inflate, and the read's inflated dataset and element beside the stack)
+    needs = stored + _inflated_held(inflated) + 2 * inflated
+    check_proportion(path, "its deflated dataset", inflated, inflated, stored, "deflate", budget, needs)
+
+
+def _read_dataset(path, budget=None):
     """The dataset, its pixels deferred, and whether its transfer syntax had to be found (no
     file meta). Without the preamble and b'DICM' (older tools, ACR-NEMA-era datasets) pydicom
     reads a file where told to (force=True), as a user would expect radiokit to; sniff let such a
@@ -525,6 +635,7 @@ def _read_dataset(path):
 
     with open(path, "rb") as fh:
         bare = fh.read(132)[128:132] != b"DICM"
+    _check_inflated(path, budget)
     try:
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
@@ -551,7 +662,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     """The dataset (pixel data deferred, not read), the frames' geometry and ``meta``; refused in
     one line where its pixels are absent, of a kind a radiograph is not (colour, float), in a
     transfer syntax pydicom cannot decode alone, or past the budget."""
-    ds, found = _read_dataset(path)
+    ds, found = _read_dataset(path, budget)
     syntax = _decodable_syntax(path, ds)
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
     n = _frame_count(path, ds)
@@ -576,7 +687,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     _check_rescale(path, dtype, slope, intercept)
     if syntax in compressed_syntaxes():  # (a bomb said as one first: no budget given, it may pass a large one's)
         check_dicom_proportion(path, syntax, n, rows, cols, dtype, budget)
-    held, rescale = _check_dicom_budget(path, ds, syntax, n, rows, cols, dtype, (slope, intercept), budget)
+    held = _check_dicom_budget(path, ds, syntax, n, rows, cols, dtype, (slope, intercept), budget)
     _check_pixel_length(path, ds, syntax, n, rows * cols * dtype.itemsize)
     meta = {
         "n": n,
@@ -601,40 +712,48 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if photometric == "MONOCHROME1":
         meta["photometric_note"] = "MONOCHROME1: the minimum value is white; read as stored, not inverted"
         _say_inverted(path)
-    if (padding := _padding_note(ds)) is not None:
+    if (padding := _padding_note(ds, slope, intercept)) is not None:
         meta["pixel_padding"] = padding
     meta.update(_dicom_pitch(path, ds))
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
-    geometry |= {"held": held, "rescale_bytes": rescale, "budget": budget}  # (a frame's own decode is checked too)
+    geometry |= held | {"budget": budget}  # (a frame's own decode is checked too)
     return ds, geometry, meta
 
 
-def _check_dicom_budget(path, ds, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> tuple[int, int]:
-    """Refuse a DICOM whose read would hold more than the budget (:func:`dicom_read_bytes`); what
-    it holds throughout and a rescaled frame's bytes, for each frame's own check as decoded."""
+def _check_dicom_budget(path, ds, syntax, n: int, rows: int, cols: int, dtype, rescale, budget) -> dict:
+    """Refuse a DICOM whose frames, read one at a time, would hold more than the budget
+    (:func:`dicom_read_bytes`: its pixel element and one frame's decoding); what it holds
+    throughout, one frame's decoding, a rescaled frame's bytes and the stack read() adds, for
+    :meth:`FrameSource.read_all`'s check and each frame's own as decoded. Why the stack apart:
+    open_frames never holds it, and a DICOM that streams within the budget was refused for it
+    (review s56rvoff)."""
     from pydicom.uid import RLELossless
 
     encapsulated = syntax in compressed_syntaxes() or syntax == RLELossless
     stream = _largest_frame_stream(path, ds, n) if encapsulated else None
     held, work, rescaled = dicom_read_bytes(path, syntax, n, rows, cols, dtype, rescale, stream)
+    stack = n * rows * cols * rescaled_dtype(dtype, *rescale).itemsize
     check_budget(
         path,
-        held + work + rescaled,
-        f"its header's {n} frame(s) of {rows}x{cols} {dtype}, read with one frame's decoding ({syntax.name})",
+        held - stack + work + rescaled,
+        f"its header's {n} frame(s) of {rows}x{cols} {dtype}: its pixel element and one frame's decoding "
+        f"({syntax.name})",
         budget,
     )
-    return held, rescaled
+    return {"held": held - stack, "work": work, "rescale_bytes": rescaled, "stack": stack, "stack_held": 0}
 
 
 def _largest_frame_stream(path, ds, n: int) -> int:
     """A bound on the largest frame's codestream in an encapsulated pixel element, before any
     frame is read: the Extended Offset Table's lengths where given; else the fragments' lengths,
-    their item headers walked in the element (pydicom holds it from the open): one fragment a frame, its
-    own; the Basic Offset Table's starts, the spans between them; else all of them (one frame may
-    hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted 6 streams, three
-    times over (it holds three copies of the one it decodes), and a file that fits was refused.
+    their item headers walked in the element (pydicom holds it from the open): one fragment a
+    frame, its own; the Basic Offset Table's starts, the spans between them; without one, the
+    runs of fragments each closed by an end marker, as pydicom finds the frames; else all of them
+    (one frame may hold every fragment). Why: bounded by the file's size, a 6-frame JPEG counted
+    6 streams, three times over (it holds three copies of the one it decodes), and a file that
+    fits was refused (two fragments a frame without an offset table: review s56rvoff).
     A frame's own stream is held to the budget again as it is decoded."""
     size = os.path.getsize(path)
     lengths = ds.get("ExtendedOffsetTableLengths")
@@ -643,7 +762,7 @@ def _largest_frame_stream(path, ds, n: int) -> int:
     value = getattr(ds.get_item("PixelData"), "value", None)  # (pydicom reads an encapsulated element at open)
     if n == 1 or not isinstance(value, (bytes, bytearray)):
         return size
-    table, fragments, pos = None, [], 0
+    table, fragments, ended, pos = None, [], [], 0
     while pos + 8 <= len(value):
         group, element, length = struct.unpack_from("<HHI", value, pos)
         if (group, element) != (0xFFFE, 0xE000) or length == 0xFFFFFFFF:
@@ -652,6 +771,9 @@ def _largest_frame_stream(path, ds, n: int) -> int:
             table = value[pos + 8 : pos + 8 + min(length, 4 * n + 4)]
         else:
             fragments.append(length)
+            # pydicom's rule without an offset table: a frame ends at a fragment whose last 10
+            # bytes hold an end marker (EOI, EOC: 0xFFD9; a fragment's padding after it)
+            ended.append(b"\xff\xd9" in value[max(pos + 8, pos + 8 + length - 10) : pos + 8 + length])
         pos += 8 + length
     if not fragments:
         return size
@@ -661,6 +783,14 @@ def _largest_frame_stream(path, ds, n: int) -> int:
     if len(starts) == n and np.all(np.diff(starts) > 0):
         ends = np.append(starts[1:], sum(8 + length for length in fragments))
         return min(size, int((ends - starts).max()))
+    if not table and len(fragments) > n and sum(ended) >= n:
+        # (the fragments after the last marker are a frame too, as pydicom reads them)
+        frames, frame = [], 0
+        for length, last in zip(fragments, ended, strict=True):
+            frame += length
+            if last:
+                frames, frame = frames + [frame], 0
+        return max(frames + [frame])
     return min(size, sum(fragments))
 
 
@@ -694,6 +824,9 @@ def dicom_read_bytes(
         # the whole dataset inflated into one buffer, which pydicom keeps, and the element copied
         # out of it; then a frame's array
         element, work = 2 * n * frame, frame
+    elif syntax == uid.ExplicitVRBigEndian:
+        # the element, the frame's array copied out of it, and that array in the machine's order
+        element, work = n * frame, 2 * frame
     else:
         element, work = n * frame, frame  # the element, and the frame's array copied out of it
     rescaled = out if tuple(rescale) != (1, 0) else 0
@@ -736,16 +869,21 @@ def _modality_lut(path, ds) -> tuple:
     return luts.pop() if luts else (1, 0, None)
 
 
-def _padding_note(ds) -> str | None:
+def _padding_note(ds, slope=1, intercept=0) -> str | None:
     """What a PixelPaddingValue (to PixelPaddingRangeLimit) says, for ``info``: those pixels hold
     no image (outside the collimated field), though they are read as stored, as pydicom reads
-    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so."""
+    them. Why: a 12-bit DX padded with 4095 had its padding counted as saturated, and nothing said so.
+    The values are stored ones: with a Modality LUT, what its pixels read as is given beside them
+    (the stored value alone named a value no pixel read holds: review s56rvoff)."""
     value = ds.get("PixelPaddingValue")
     if value is None or value == "":
         return None
     limit = ds.get("PixelPaddingRangeLimit")
     ranged = limit not in (None, "")
-    span = f"PixelPaddingValue {value}" + (f" to {limit}" if ranged else "")
+    ends = [value, limit] if ranged else [value]
+    span = "PixelPaddingValue " + " to ".join(str(v) for v in ends)
+    if (slope, intercept) != (1, 0) and all(isinstance(v, (int, float)) for v in ends):
+        span += " (" + " to ".join(f"{v * slope + intercept:g}" for v in ends) + " as read, rescaled)"
     return (
         f"{span}: pixels of {'those values' if ranged else 'that value'} hold no image (outside the collimated "
         "field); read as stored, and counted in the range and saturation above"
@@ -777,15 +915,19 @@ def _check_high_bit(path, ds, stored: int) -> None:
     if value in (None, "") or int(value) == stored - 1:
         return
     high = int(value)
+    # (a writer that kept its counts in the low bits and mislabelled HighBit is told apart by the
+    # words, not the header: shifted, such counts would lose their low bits)
     advice = (
-        f"shift each word right by {high + 1 - stored} bits and set HighBit {stored - 1}"
+        f"if its counts are in each word's top bits (its low {high + 1 - stored} bits zero), shift each word right "
+        f"by {high + 1 - stored} bits and set HighBit {stored - 1}; with every word below {1 << stored}, its "
+        f"counts are in the low bits and HighBit alone is wrong: set HighBit {stored - 1}"
         if high >= stored
         else "a HighBit below them is no layout: its header is wrong"
     )
     raise FormatError(
         path,
-        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts are not the low bits "
-        f"of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
+        f"a DICOM file whose HighBit {high} is not its BitsStored {stored} less one: its counts may not be the low "
+        f"bits of each word, where DICOM images keep them and pydicom and radiokit read them; {advice}",
     )
 
 

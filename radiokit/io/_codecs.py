@@ -595,7 +595,7 @@ def compressed_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     # its own header's decode (a JPEG 2000's tiles, unknown at open) beside what read() holds
     check_budget(
         path,
-        geometry["held"] + frame_decode_bytes(header, len(buf)) + geometry["rescale_bytes"],
+        geometry["held"] + geometry["stack_held"] + frame_decode_bytes(header, len(buf)) + geometry["rescale_bytes"],
         f"frame {i} ({describe(header)}, {len(buf)} bytes), decoded beside the frames read",
         geometry["budget"],
     )

@@ -556,6 +556,8 @@ class FrameSource:
         self.meta.update(meta, dtype=str(self.dtype))
 
     def _read_dicom(self, i):
+        # (each frame's own decode is checked beside the stack where read_all holds one)
+        self._dicom_geo["stack_held"] = self._dicom_geo["stack"] if self._reading_all else 0
         return dicom_frame(self.path, self._dicom, self._dicom_geo, i)
 
     def _open_tiff(self, dataset=None, **hints):
@@ -2085,8 +2087,16 @@ class FrameSource:
         return rows * cols * np.dtype(self.dtype).itemsize
 
     def read_all(self) -> Frames:
+        # a DICOM's stack is held beside its pixel element and a frame's decoding (open_dicom
+        # charged those alone: a DICOM streamed never holds the stack)
+        geo = self._dicom_geo if self.format == "dicom" else None
+        beside = geo["held"] + geo["work"] + geo["rescale_bytes"] if geo else 0
         check_budget(
-            self.path, self.n * self.frame_bytes, f"{self.n} frame(s) of {self.frame_shape} {self.dtype}", self._budget
+            self.path,
+            self.n * self.frame_bytes + beside,
+            f"{self.n} frame(s) of {self.frame_shape} {self.dtype}"
+            + (", beside the pixel element and one frame's decoding" if geo else ""),
+            self._budget,
         )
         try:
             out = np.empty((self.n,) + self.frame_shape, dtype=self.dtype)
