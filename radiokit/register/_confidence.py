@@ -267,15 +267,16 @@ def robust_noise_map(f, window):
     a rim a few px wide crossing a tile of a window's sigma is ``e`` ~ 0.1-0.2 (``sigma`` read
     1.1-1.3x), and the 3 x 3 median leaves the tiles a line crosses (at most 5 of 9, mostly 3) out.
     Blocks whose four pixels are equal hold no noise (a collimated, clipped or masked part, as
-    ``noise_sigma`` leaves them out): they enter the median as 0 and +inf in equal numbers, which
+    ``noise_sigma`` leaves them out): they enter the median as 0 and a huge value in equal numbers, which
     leaves a tile's median the live pixels' own; a tile with under a quarter live takes the
-    noise map's value. Costs about the noise map's (4 ms at 560 x 560)."""
+    noise map's value. About 10 ms at 560 x 560 (window 24)."""
     f = np.asarray(f, np.float32)
     a, b, c, d = f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]
     h = np.abs(0.5 * (a - b - c + d))
     live = (a != b) | (a != c) | (a != d)
     checker = (np.indices(h.shape).sum(axis=0) % 2).astype(bool)
-    h = np.where(live, h, np.where(checker, np.float32(np.inf), np.float32(0)))
+    # (a finite stand-in for +inf: a tile's median is never one while a quarter of it is live)
+    h = np.where(live, h, np.where(checker, np.float32(3e38), np.float32(0)))
     h = np.pad(h, ((0, 1), (0, 1)), mode="edge")
     live = np.pad(live, ((0, 1), (0, 1)), mode="edge")
     side = max(4, int(round(window)))
@@ -288,9 +289,9 @@ def robust_noise_map(f, window):
 
     med = 1.4826 * np.median(tiles(h), axis=-1)
     share = tiles(live).mean(axis=-1)
-    fallback = noise_map(f, window)
     if (share < 0.25).any():
-        # the noise map's value at the tiles' centres
+        # the noise map's value at the tiles' centres (computed only here: 5 ms at 560 x 560)
+        fallback = noise_map(f, window)
         cy = np.minimum(np.arange(t0) * side + side // 2, n0 - 1)
         cx = np.minimum(np.arange(t1) * side + side // 2, n1 - 1)
         med = np.where(share < 0.25, fallback[np.ix_(cy, cx)], med)
@@ -298,7 +299,6 @@ def robust_noise_map(f, window):
         from scipy import ndimage
 
         med = ndimage.median_filter(med, size=3, mode="nearest")
-    med = np.where(np.isfinite(med), med, fallback.max())
     import cv2
 
     # cv2's resize puts tile i's value at its centre ((i + 0.5) side - 0.5), as the tiles lie
