@@ -8,7 +8,8 @@ the smaller of the window's translation information and its affine marginal
     python benchmarks/bench_register_affine_obs.py --prior 0.03 phantoms --out out/phantoms --split train
     python benchmarks/bench_register_affine_obs.py --prior 0.03 flag --split train --size 560 --seeds 2 --textureless --skip elastix
 
-``--prior``: the prior standard deviation of each element of a window's displacement gradient
+``--noise-share map``: the noise's share of the affine moments from the noise map, as before
+session 56 (``robust``, the default: ``_confidence.robust_noise_map``). ``--prior``: the prior standard deviation of each element of a window's displacement gradient
 (px per px); the rest goes to the bench unchanged. The fields are the cached ones (register them
 first with the bench itself), so only the assessment changes.
 """
@@ -32,6 +33,13 @@ def main(argv=None) -> int:
         action="store_true",
         help="the affine map for the interior's observed share alone (_confidence.AFFINE_INTERIOR_ONLY)",
     )
+    ap.add_argument(
+        "--noise-share",
+        choices=("robust", "map"),
+        default="robust",
+        help="the noise's share in the affine moments from _confidence.robust_noise_map (session 56) or,"
+        " as sessions 55's, from the noise map that reads a strong rim as noise",
+    )
     ap.add_argument("bench", choices=BENCHES)
     a, rest = ap.parse_known_args(argv)
     if not a.prior > 0:
@@ -40,7 +48,13 @@ def main(argv=None) -> int:
 
     C.AFFINE_PRIOR = a.prior
     C.AFFINE_INTERIOR_ONLY = a.interior_only
-    print(f"map: local affine bound, prior {a.prior} px/px, interior only: {a.interior_only}", flush=True)
+    if a.noise_share == "map":
+        C.robust_noise_map = C.noise_map  # observability() reads it through the module
+    print(
+        f"map: local affine bound, prior {a.prior} px/px, interior only: {a.interior_only},"
+        f" noise's share: {a.noise_share}",
+        flush=True,
+    )
     if a.bench == "phantoms":
         from bench_register_phantoms import main as run
     elif a.bench == "flag":

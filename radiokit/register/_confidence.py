@@ -254,6 +254,58 @@ def noise_map(f, window):
     return np.sqrt(np.maximum(_gauss(h * h, window), 1e-30))
 
 
+def robust_noise_map(f, window):
+    """Local noise standard deviation that a strong rim or an edge does not reach: the median of
+    ``|h|`` (``h`` the diagonal second difference of ``noise_map``, ``sigma`` for white noise) x
+    1.4826 over square tiles of side ``window`` (px), then the median of each tile's 3 x 3
+    neighbourhood, bilinear back to every pixel (float32, ``f``'s shape).
+
+    ``noise_map``'s window mean of ``h^2`` takes in a rim's ``h`` (about half its step on every
+    pixel along it) with the noise: ~40x the true variance across a disc of contrast 100 whose
+    noise is 1 (its window spreads the rim's energy over the texture beside it). A median ignores
+    a share ``e < 1/2`` of outliers up to reading the clean ``|h|``'s quantile ``1 / (2 (1 - e))``:
+    a rim a few px wide crossing a tile of a window's sigma is ``e`` ~ 0.1-0.2 (``sigma`` read
+    1.1-1.3x), and the 3 x 3 median leaves the tiles a line crosses (at most 5 of 9, mostly 3) out.
+    Blocks whose four pixels are equal hold no noise (a collimated, clipped or masked part, as
+    ``noise_sigma`` leaves them out): they enter the median as 0 and a huge value in equal numbers, which
+    leaves a tile's median the live pixels' own; a tile with under a quarter live takes the
+    noise map's value. About 10 ms at 560 x 560 (window 24)."""
+    f = np.asarray(f, np.float32)
+    a, b, c, d = f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]
+    h = np.abs(0.5 * (a - b - c + d))
+    live = (a != b) | (a != c) | (a != d)
+    checker = (np.indices(h.shape).sum(axis=0) % 2).astype(bool)
+    # (a finite stand-in for +inf: a tile's median is never one while a quarter of it is live)
+    h = np.where(live, h, np.where(checker, np.float32(3e38), np.float32(0)))
+    h = np.pad(h, ((0, 1), (0, 1)), mode="edge")
+    live = np.pad(live, ((0, 1), (0, 1)), mode="edge")
+    side = max(4, int(round(window)))
+    n0, n1 = h.shape
+    t0, t1 = -(-n0 // side), -(-n1 // side)
+    pad = ((0, t0 * side - n0), (0, t1 * side - n1))
+
+    def tiles(x):
+        return np.pad(x, pad, mode="symmetric").reshape(t0, side, t1, side).transpose(0, 2, 1, 3).reshape(t0, t1, -1)
+
+    med = 1.4826 * np.median(tiles(h), axis=-1)
+    share = tiles(live).mean(axis=-1)
+    if (share < 0.25).any():
+        # the noise map's value at the tiles' centres (computed only here: 5 ms at 560 x 560)
+        fallback = noise_map(f, window)
+        cy = np.minimum(np.arange(t0) * side + side // 2, n0 - 1)
+        cx = np.minimum(np.arange(t1) * side + side // 2, n1 - 1)
+        med = np.where(share < 0.25, fallback[np.ix_(cy, cx)], med)
+    if min(t0, t1) >= 3:
+        from scipy import ndimage
+
+        med = ndimage.median_filter(med, size=3, mode="nearest")
+    import cv2
+
+    # cv2's resize puts tile i's value at its centre ((i + 0.5) side - 0.5), as the tiles lie
+    out = cv2.resize(med.astype(np.float32), (t1 * side, t0 * side), interpolation=cv2.INTER_LINEAR)
+    return out[:n0, :n1]
+
+
 # the ring inside a collimator's aperture whose level is the open beam's (px from the border
 # region, beyond the object's 4 px blur: 3 sigmas), and the share of the aperture that may lie
 # beyond that level (the open beam is an extreme: nothing attenuates less than nothing)
@@ -440,7 +492,7 @@ def _moment_kernel(s, a) -> np.ndarray:
     return (k * u**a / k.sum()).astype(np.float32)
 
 
-def affine_lmins(gy, gx, spacing, bias, precision, step=1) -> tuple[np.ndarray, np.ndarray]:
+def affine_lmins(gy, gx, spacing, bias, precision, step=1, project=True) -> tuple[np.ndarray, np.ndarray]:
     """``(lmin_translation, lmin_affine)``: the smaller eigenvalue of a window's information on its
     centre's translation, (1) the map's (the gradients' covariance over the window: a translation
     with an intensity offset beside it) and (2) the same translation's *marginal* information when
@@ -453,7 +505,8 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1) -> tuple[np.ndarray, 
     precision of each element of ``A`` in units of ``(px per window sigma)^-2`` per unit window
     weight and noise variance (per pixel, or a scalar; 0: no prior). ``step``: both on every
     ``step``-th pixel from ``step // 2`` in each direction (the 6 x 6 systems cost 10x the filters
-    at every pixel; the window's moments vary over its sigma, not a pixel).
+    at every pixel; the window's moments vary over its sigma, not a pixel). ``project``: an
+    indefinite estimate projected onto its nearest PSD matrix (see below).
 
     A window moving as a whole is a translation; a field free at the window's scale moves it by a
     translation and a gradient. On a rim of radius ``R`` the window sees only the normal
@@ -517,16 +570,18 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1) -> tuple[np.ndarray, 
         return np.maximum(low, 0) if clip else low
 
     S = schur(F, prec)
-    # the noise's share taken out can leave the 6 x 6 matrix indefinite where the noise map reads
-    # structure as noise (a strong rim: ~6x the true noise), and the Schur complement of an
-    # indefinite matrix goes negative, clipped to "unobserved": a textured disc's interior read 25 %
-    # observed under a rim of contrast 100, 100 % under one of 10. There its nearest information
-    # matrix (the negative eigenvalues set to 0) keeps the marginal an information's. Found where
-    # the complement is negative or exceeds the translation's own block (a marginal of a PSD matrix
-    # never does); only there, since a 6 x 6 eigendecomposition at every sample doubles the cost
+    # an unbiased estimate of a PSD matrix is not PSD: where the window's structure is near the
+    # noise's sampling error (the noise's share taken out exactly, its fluctuation left), the 6 x 6
+    # matrix is indefinite and its Schur complement negative, clipped to "unobserved" (up to 11 %
+    # of a training phantom's object; before session 56 also beside every strong rim, whose noise
+    # map's share was ~40x the noise). There its nearest information matrix (the negative
+    # eigenvalues set to 0) keeps the marginal an information's. Found where the complement is
+    # negative or exceeds the translation's own block (a marginal of a PSD matrix never does); only
+    # there, since a 6 x 6 eigendecomposition at every sample doubles the cost (``project``: False,
+    # the clipped complement, to measure it)
     Ftt = F[..., :2, :2]
     bad = (smaller(S, clip=False) < 0) | (np.trace(S, axis1=-2, axis2=-1) > np.trace(Ftt, axis1=-2, axis2=-1))
-    if bad.any():
+    if project and bad.any():
         w, v = np.linalg.eigh(F[bad])
         Fp = (v * np.maximum(w, 0)[..., None, :]) @ np.swapaxes(v, -1, -2)
         S[bad] = schur(Fp, prec[bad] if np.ndim(prec) else prec)
@@ -620,7 +675,10 @@ def observability(
     translation = None
     if prior is not None:
         translation = _confidence(info, bound_scale, flat)[0]
-        info = np.minimum(info, _affine_info(grads, spacing, highpass, sig2, floor2, prior))
+        # the noise's share in the gradients from an estimate a rim does not reach (the noise map
+        # reads a strong rim as noise: the 6 x 6 information made indefinite)
+        bias2 = robust_noise_map(f, spacing) ** 2
+        info = np.minimum(info, _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias2))
     conf, bound = _confidence(info, bound_scale, flat)
     pinned_conf = None
     if pinned:
@@ -633,16 +691,27 @@ def observability(
     return Observability(conf, bound, sigma, obj, pinned_conf, translation)
 
 
-def _affine_info(grads, spacing, highpass, sig2, floor2, prior):
+def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2=None):
     """A window centre's information on its translation when the window moves by a local affine
     field (:func:`affine_lmins`), in the map's units; ``grads``: the map's (:func:`_map_gradients`);
     ``prior``: the prior standard deviation of each element of the displacement's gradient (px
     per px; a field of amplitude ``a`` and correlation length ``L`` has gradients of about
     ``a / L``). The noise-only floor is the
     translation's (:func:`_noise_lmin`): a marginal of pure noise is no larger, so this errs
-    towards unobserved."""
+    towards unobserved.
+
+    Two noise levels, for two things. ``bias_sig2`` (None: ``sig2``): the pixel noise's variance,
+    whose share of each squared derivative is taken out of the moments: ``E[g g^T] = T + b I``
+    for the noise alone, so an estimate ``b' > b`` leaves ``T - (b' - b) D``, indefinite wherever
+    ``T`` is nearly singular (a rim's rotation about its centre of curvature), and the Schur
+    complement of an indefinite matrix is no information (:func:`robust_noise_map`: a rim does not
+    reach it). ``sig2``: the residual's variance per pixel that the information is counted against,
+    and the floor's scale: the noise map's, which at a sharp rim also holds what warping it leaves
+    (interpolation error, of the order of the second difference the map reads; a sampled oblique
+    edge's gradients also wobble along it by ~1e-4 of the normal's, which it absorbs), the
+    translation map's own units."""
     gy, gx, inside = grads
-    bias = _deriv_noise_var(1.0) * sig2
+    bias = _deriv_noise_var(1.0) * (sig2 if bias_sig2 is None else bias_sig2)
     if inside is not None:
         bias = bias * _window(inside, spacing)
     area = _window_area(spacing)
