@@ -1020,20 +1020,59 @@ def _say_inverted(path) -> None:
     warnings.warn(said, stacklevel=5)
 
 
+#: Where an enhanced multi-frame image keeps each spacing: the functional group's sequence
+_PITCH_GROUPS = {"ImagerPixelSpacing": "FramePixelDataPropertiesSequence", "PixelSpacing": "PixelMeasuresSequence"}
+
+
+def _spacing_in_groups(path, ds, name: str):
+    """``name``'s value where an enhanced multi-frame image keeps it (:data:`_PITCH_GROUPS`), and
+    where: shared, else every frame's own; None where no group states it. Frames stating
+    different ones (or some none) give a one-line warning and {"pixel_size_unusable": why}: one
+    stack has one pitch, and any one would give some frames' lengths in mm wrong, while their
+    counts are right (a pitch is optional, as an unusable one in any other file)."""
+
+    def stated(group):
+        sequence = group.get(_PITCH_GROUPS[name]) if group is not None else None
+        value = sequence[0].get(name) if sequence else None
+        return None if value in (None, "") else tuple(value)
+
+    shared = ds.get("SharedFunctionalGroupsSequence")
+    if (value := stated(shared[0] if shared else None)) is not None:
+        return value, f"SharedFunctionalGroupsSequence > {_PITCH_GROUPS[name]}"
+    values = {stated(group) for group in ds.get("PerFrameFunctionalGroupsSequence") or []}
+    if values == {None} or not values:
+        return None
+    if len(values) > 1:
+        shown_ = ", ".join("none" if v is None else "\\".join(str(x) for x in v) for v in sorted(values, key=str)[:4])
+        return usable_pixel_sizes(
+            path, f"DICOM's {name}", {}, [f"its frames' {name} differ ({shown_} mm): one stack has one pitch"]
+        )
+    return values.pop(), f"PerFrameFunctionalGroupsSequence > {_PITCH_GROUPS[name]}, the same in every frame"
+
+
 def _dicom_pitch(path, ds) -> dict:
     """``x_pixel_size`` / ``y_pixel_size`` (metres) from ImagerPixelSpacing (the detector's pitch,
     at its face), else PixelSpacing (in the patient: the pitch over the magnification, where the
-    writer corrected for it). Both are [row spacing, column spacing] in mm: rows are y."""
+    writer corrected for it). Both are [row spacing, column spacing] in mm: rows are y. Each at
+    the top level, else in an enhanced image's functional groups (:func:`_spacing_in_groups`):
+    there it was ignored, and such frames measured in pixels without a word."""
     for name in ("ImagerPixelSpacing", "PixelSpacing"):
-        value = ds.get(name)
+        value, where = ds.get(name), None
         if value is None or value == "":
-            continue
+            found = _spacing_in_groups(path, ds, name)
+            if isinstance(found, dict):  # (frames differing: said, and no pitch)
+                return found
+            if found is None:
+                continue
+            value, where = found
         try:
             row, col = (float(v) * 1e-3 for v in value)
         except (TypeError, ValueError):
             return usable_pixel_sizes(path, f"DICOM's {name}", {}, [f"{name} {value!r} is not two numbers"])
         out = usable_pixel_sizes(path, f"DICOM's {name}", {"x_pixel_size": col, "y_pixel_size": row})
-        out["pixel_size_source"] = name
+        out["pixel_size_source"] = name  # (correct's stack rule reads the name alone)
+        if where is not None and "pixel_size_unusable" not in out:
+            out["pixel_size_where"] = where
         return out
     return {}
 
