@@ -313,3 +313,42 @@ def test_an_enhanced_image_whose_frames_pitches_differ_is_read_without_one_and_s
     np.testing.assert_array_equal(got.data, counts)
     assert "x_pixel_size" not in got.meta and "differ" in got.meta["pixel_size_unusable"]
     assert all("\n" not in str(w.message) for w in said)
+
+
+@pytest.mark.parametrize("codec", ["native", "jls", "j2k"])
+def test_bits_above_bits_stored_read_alike_uncompressed_and_compressed_and_are_said(tmp_path, codec):
+    """12-bit counts whose words have bits above HighBit set (an overlay in the unused bits, as
+    ACR-NEMA-era writers kept one, or a detector wider than its BitsStored). PS3.5 8.1.1: the pixel
+    value is the BitsStored bits up to HighBit, the rest no part of it; pydicom masks them from
+    uncompressed words without a word, and radiokit kept them from a compressed frame (its stream
+    16-bit, as CharLS and OpenJPEG write uint16), so one image read two ways. Both read the low 12
+    bits, and both say in one line, naming the file, how many words had more."""
+    import imagecodecs
+    from pydicom import dcmread
+    from pydicom.encaps import encapsulate
+    from pydicom.uid import JPEG2000Lossless, JPEGLSLossless
+
+    from radiokit.io import BitDepthWarning
+
+    counts = _counts()
+    above = np.random.default_rng(7).integers(0, 4, size=counts.shape, dtype=np.uint16)
+    words = counts | (above << 12)  # values up to 16383 in the words, 12-bit counts in their low bits
+    path = _dx(tmp_path / f"{codec}.dcm", words)
+    if codec != "native":
+        syntax, encode = {
+            "jls": (JPEGLSLossless, imagecodecs.jpegls_encode),
+            "j2k": (JPEG2000Lossless, lambda f: imagecodecs.jpeg2k_encode(f, level=0, codecformat="J2K")),
+        }[codec]
+        ds = dcmread(path)
+        ds.file_meta.TransferSyntaxUID = syntax
+        ds.PixelData = encapsulate([encode(words)])
+        ds["PixelData"].VR = "OB"
+        ds.save_as(path)
+    with pytest.warns(
+        BitDepthWarning, match=rf"{codec}\.dcm: .*{np.count_nonzero(above)} .*above.*BitsStored 12"
+    ) as said:
+        got = read(path)
+    np.testing.assert_array_equal(got.data[0], counts)
+    # one line, once (info shows it on stderr as its other warnings: run_cli ignores warnings)
+    said = [w for w in said if issubclass(w.category, BitDepthWarning)]
+    assert len(said) == 1 and "\n" not in str(said[0].message), said

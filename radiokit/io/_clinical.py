@@ -26,6 +26,7 @@ from radiokit.io._codecs import (
     syntax_header,
 )
 from radiokit.io._experiment import usable_pixel_sizes
+from radiokit.io._frames import BitDepthWarning
 
 
 class InvertedWarning(UserWarning):
@@ -718,6 +719,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
+    geometry["bits_stored"] = stored
     geometry |= held | {"budget": budget}  # (a frame's own decode is checked too)
     return ds, geometry, meta
 
@@ -1083,13 +1085,16 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     integers and the values fit int32, else float64 (exact for every 32-bit count)."""
     from pydicom.pixels import pixel_array
 
+    # unsigned words are masked to BitsStored here, for every syntax alike (:func:`_stored_bits`)
+    own = {"correct_unused_bits": False} if geometry["dtype"].kind == "u" else {}
     if ds.file_meta.TransferSyntaxUID in compressed_syntaxes():
         stored = compressed_frame(path, ds, geometry, i)
     elif geometry["n"] > 1:
-        stored = pixel_array(ds, index=i)
+        stored = pixel_array(ds, index=i, **own)
     else:
-        stored = pixel_array(ds)
+        stored = pixel_array(ds, **own)
     stored = np.asarray(stored).astype(geometry["dtype"].newbyteorder("="), copy=False)
+    stored = _stored_bits(path, stored, geometry, i)
     if stored.shape != (geometry["rows"], geometry["cols"]):
         # pydicom returns every frame its data holds where fewer are declared (allow_excess_frames)
         raise FormatError(
@@ -1098,6 +1103,40 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
             f"holds more frames than its NumberOfFrames ({ds.get('NumberOfFrames', 'absent: 1')}) declares",
         )
     return rescaled(stored, geometry["slope"], geometry["intercept"])
+
+
+def _stored_bits(path, words: np.ndarray, geometry: dict, i: int) -> np.ndarray:
+    """Unsigned ``words``' low BitsStored bits, the pixel value DICOM defines (PS3.5 8.1.1: the
+    bits above HighBit are no part of it); where any word had more, one warning a file, naming
+    it. Why: pydicom masked uncompressed words without a word, and a compressed frame's decoded
+    ones were kept (its stream 16-bit for 12-bit counts, as CharLS and OpenJPEG write uint16: the
+    codestream's precision is the word's, not the count's), so one image read two ways. Masked,
+    not refused: such bits are an overlay ACR-NEMA-era writers kept there, or a detector wider
+    than its BitsStored (its values then wrap), and which is not in the file; its counts are
+    read, and the warning says both. Signed words are sign-extended from BitsStored's top bit on
+    both paths already (pydicom's, and :func:`compressed_frame`)."""
+    stored = geometry.get("bits_stored", 0)
+    if words.dtype.kind != "u" or not 0 < stored < words.dtype.itemsize * 8 or words.size == 0:
+        return words
+    top = (1 << stored) - 1
+    peak = int(words.max())  # (no temporary of the frame's size where none is above: the common case)
+    if peak <= top:
+        return words
+    if not geometry.get("bits_above_said"):
+        geometry["bits_above_said"] = True  # once per open file, not once per frame
+        count = int(np.count_nonzero(words > top))
+        said = BitDepthWarning(
+            f"{shown(path)}: {count} of frame {i}'s {words.size} words have bits set above its BitsStored {stored} "
+            f"(values up to {peak} in the words): read as their low {stored} bits, the pixel value DICOM defines "
+            f"(PS3.5 8.1.1), as uncompressed words are read; the bits above are an overlay, or its detector's counts "
+            f"are wider and its BitsStored is wrong (its values then wrapped)"
+        )
+        said.path = str(path)  # the command line shows it once per file, not at each of its opens
+        warnings.warn(said, stacklevel=5)
+    if not words.flags.writeable:
+        return words & words.dtype.type(top)
+    words &= words.dtype.type(top)  # in place: no second frame beside the budget's count
+    return words
 
 
 def rescaled_dtype(dtype, slope, intercept) -> np.dtype:
