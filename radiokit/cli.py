@@ -184,7 +184,10 @@ def _clinical_summary(meta: dict) -> dict:
         "lossy": meta.get("lossy"),
         "photometric": meta.get("photometric_note") or meta.get("photometric"),
         "rescale": f"stored * {r['slope']:g} + {r['intercept']:g} (RescaleSlope/Intercept)" if r else None,
-        "pixel_size_from": meta.get("pixel_size_source"),
+        "pixel_size_from": meta.get("pixel_size_source")
+        + (f" (in its {meta['pixel_size_where']})" if meta.get("pixel_size_where") else "")
+        if meta.get("pixel_size_source")
+        else None,
         "padding": meta.get("pixel_padding"),
     }
 

@@ -246,3 +246,109 @@ def test_a_high_bit_refusal_does_not_tell_a_low_bit_file_to_shift_its_counts_awa
     said = str(info.value)
     assert "every word below 4096" in said and "set HighBit 11" in said, said
     assert "\n" not in said
+
+
+def _enhanced(path, counts, groups: dict, *, shared: bool):
+    """A 3-frame image of ``counts`` whose pitch is where an enhanced multi-frame image keeps it:
+    ``groups`` maps a functional group (PixelMeasuresSequence: PixelSpacing;
+    FramePixelDataPropertiesSequence: ImagerPixelSpacing) to its spacing, shared or one a frame
+    (``groups``' values then a list, a frame's each), none at the top level."""
+    from pydicom import dcmread
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    _dx(path, counts.reshape(-1, counts.shape[-1]))
+    ds = dcmread(path)
+    ds.Rows, ds.NumberOfFrames = counts.shape[1], counts.shape[0]
+
+    def group(k):
+        item = Dataset()
+        for sequence, spacing in groups.items():
+            inner = Dataset()
+            setattr(inner, "PixelSpacing" if sequence == "PixelMeasuresSequence" else "ImagerPixelSpacing", spacing[k])
+            setattr(item, sequence, Sequence([inner]))
+        return item
+
+    if shared:
+        ds.SharedFunctionalGroupsSequence = Sequence([group(0)])
+    else:
+        ds.PerFrameFunctionalGroupsSequence = Sequence([group(k) for k in range(counts.shape[0])])
+    ds.save_as(path)
+    return path
+
+
+def test_an_enhanced_image_s_pitch_in_its_functional_groups_is_read_and_info_says_where(tmp_path):
+    """An enhanced multi-frame image keeps PixelSpacing in its functional groups' Pixel Measures
+    (and an X-ray one ImagerPixelSpacing in its Frame Pixel Data Properties), not at the top level:
+    it was ignored, and its frames measured in pixels without a word. Shared, or the same in every
+    frame, it is read as a top-level one; info says which it is and where it was found."""
+    counts = _counts((3, 40, 50))
+    row, col = 0.2, 0.1  # mm, [row spacing, column spacing]: rows are y
+    shared = _enhanced(tmp_path / "shared.dcm", counts, {"PixelMeasuresSequence": [[row, col]]}, shared=True)
+    got = read(shared)
+    np.testing.assert_array_equal(got.data, counts)
+    assert got.meta["x_pixel_size"] == pytest.approx(col * 1e-3, rel=1e-12)
+    assert got.meta["y_pixel_size"] == pytest.approx(row * 1e-3, rel=1e-12)
+    assert got.meta["pixel_size_source"] == "PixelSpacing"  # (at the patient: correct's stack rule)
+    res = run_cli("info", shared)
+    assert res.returncode == 0, res.stderr
+    said = next(line for line in res.stdout.splitlines() if line.strip().startswith("pixel_size_from"))
+    assert "PixelSpacing" in said and "SharedFunctionalGroupsSequence" in said, res.stdout
+    # every frame's own, the same: read; and the detector's pitch preferred to the patient's
+    each = {"PixelMeasuresSequence": [[row, col]] * 3, "FramePixelDataPropertiesSequence": [[0.15, 0.15]] * 3}
+    got = read(_enhanced(tmp_path / "each.dcm", counts, each, shared=False))
+    assert got.meta["pixel_size_source"] == "ImagerPixelSpacing"
+    assert got.meta["x_pixel_size"] == pytest.approx(0.15e-3, rel=1e-12)
+
+
+def test_an_enhanced_image_whose_frames_pitches_differ_is_read_without_one_and_says_so(tmp_path):
+    """Frames of differing PixelSpacing: any one pitch would give some frames' lengths in mm wrong,
+    so the stack has none (lengths in pixels), said in one line naming the file; its counts are
+    right and still read (a pitch is optional, as an unusable one in any other file)."""
+    counts = _counts((3, 40, 50))
+    groups = {"PixelMeasuresSequence": [[0.1, 0.1], [0.1, 0.1], [0.2, 0.2]]}
+    path = _enhanced(tmp_path / "zoomed.dcm", counts, groups, shared=False)
+    with pytest.warns(UserWarning, match=r"zoomed\.dcm: .*PixelSpacing.*differ") as said:
+        got = read(path)
+    np.testing.assert_array_equal(got.data, counts)
+    assert "x_pixel_size" not in got.meta and "differ" in got.meta["pixel_size_unusable"]
+    assert all("\n" not in str(w.message) for w in said)
+
+
+@pytest.mark.parametrize("codec", ["native", "jls", "j2k"])
+def test_bits_above_bits_stored_read_alike_uncompressed_and_compressed_and_are_said(tmp_path, codec):
+    """12-bit counts whose words have bits above HighBit set (an overlay in the unused bits, as
+    ACR-NEMA-era writers kept one, or a detector wider than its BitsStored). PS3.5 8.1.1: the pixel
+    value is the BitsStored bits up to HighBit, the rest no part of it; pydicom masks them from
+    uncompressed words without a word, and radiokit kept them from a compressed frame (its stream
+    16-bit, as CharLS and OpenJPEG write uint16), so one image read two ways. Both read the low 12
+    bits, and both say in one line, naming the file, how many words had more."""
+    import imagecodecs
+    from pydicom import dcmread
+    from pydicom.encaps import encapsulate
+    from pydicom.uid import JPEG2000Lossless, JPEGLSLossless
+
+    from radiokit.io import BitDepthWarning
+
+    counts = _counts()
+    above = np.random.default_rng(7).integers(0, 4, size=counts.shape, dtype=np.uint16)
+    words = counts | (above << 12)  # values up to 16383 in the words, 12-bit counts in their low bits
+    path = _dx(tmp_path / f"{codec}.dcm", words)
+    if codec != "native":
+        syntax, encode = {
+            "jls": (JPEGLSLossless, imagecodecs.jpegls_encode),
+            "j2k": (JPEG2000Lossless, lambda f: imagecodecs.jpeg2k_encode(f, level=0, codecformat="J2K")),
+        }[codec]
+        ds = dcmread(path)
+        ds.file_meta.TransferSyntaxUID = syntax
+        ds.PixelData = encapsulate([encode(words)])
+        ds["PixelData"].VR = "OB"
+        ds.save_as(path)
+    with pytest.warns(
+        BitDepthWarning, match=rf"{codec}\.dcm: .*{np.count_nonzero(above)} .*above.*BitsStored 12"
+    ) as said:
+        got = read(path)
+    np.testing.assert_array_equal(got.data[0], counts)
+    # one line, once (info shows it on stderr as its other warnings: run_cli ignores warnings)
+    said = [w for w in said if issubclass(w.category, BitDepthWarning)]
+    assert len(said) == 1 and "\n" not in str(said[0].message), said

@@ -26,6 +26,7 @@ from radiokit.io._codecs import (
     syntax_header,
 )
 from radiokit.io._experiment import usable_pixel_sizes
+from radiokit.io._frames import BitDepthWarning
 
 
 class InvertedWarning(UserWarning):
@@ -718,6 +719,7 @@ def open_dicom(path, budget) -> tuple[object, dict, dict]:
     if syntax in compressed_syntaxes() and (lossy := say_lossy_dicom(path, ds, syntax)):
         meta["lossy"] = lossy
     geometry = {"n": n, "rows": rows, "cols": cols, "dtype": dtype, "slope": slope, "intercept": intercept}
+    geometry["bits_stored"] = stored
     geometry |= held | {"budget": budget}  # (a frame's own decode is checked too)
     return ds, geometry, meta
 
@@ -1020,20 +1022,59 @@ def _say_inverted(path) -> None:
     warnings.warn(said, stacklevel=5)
 
 
+#: Where an enhanced multi-frame image keeps each spacing: the functional group's sequence
+_PITCH_GROUPS = {"ImagerPixelSpacing": "FramePixelDataPropertiesSequence", "PixelSpacing": "PixelMeasuresSequence"}
+
+
+def _spacing_in_groups(path, ds, name: str):
+    """``name``'s value where an enhanced multi-frame image keeps it (:data:`_PITCH_GROUPS`), and
+    where: shared, else every frame's own; None where no group states it. Frames stating
+    different ones (or some none) give a one-line warning and {"pixel_size_unusable": why}: one
+    stack has one pitch, and any one would give some frames' lengths in mm wrong, while their
+    counts are right (a pitch is optional, as an unusable one in any other file)."""
+
+    def stated(group):
+        sequence = group.get(_PITCH_GROUPS[name]) if group is not None else None
+        value = sequence[0].get(name) if sequence else None
+        return None if value in (None, "") else tuple(value)
+
+    shared = ds.get("SharedFunctionalGroupsSequence")
+    if (value := stated(shared[0] if shared else None)) is not None:
+        return value, f"SharedFunctionalGroupsSequence > {_PITCH_GROUPS[name]}"
+    values = {stated(group) for group in ds.get("PerFrameFunctionalGroupsSequence") or []}
+    if values == {None} or not values:
+        return None
+    if len(values) > 1:
+        shown_ = ", ".join("none" if v is None else "\\".join(str(x) for x in v) for v in sorted(values, key=str)[:4])
+        return usable_pixel_sizes(
+            path, f"DICOM's {name}", {}, [f"its frames' {name} differ ({shown_} mm): one stack has one pitch"]
+        )
+    return values.pop(), f"PerFrameFunctionalGroupsSequence > {_PITCH_GROUPS[name]}, the same in every frame"
+
+
 def _dicom_pitch(path, ds) -> dict:
     """``x_pixel_size`` / ``y_pixel_size`` (metres) from ImagerPixelSpacing (the detector's pitch,
     at its face), else PixelSpacing (in the patient: the pitch over the magnification, where the
-    writer corrected for it). Both are [row spacing, column spacing] in mm: rows are y."""
+    writer corrected for it). Both are [row spacing, column spacing] in mm: rows are y. Each at
+    the top level, else in an enhanced image's functional groups (:func:`_spacing_in_groups`):
+    there it was ignored, and such frames measured in pixels without a word."""
     for name in ("ImagerPixelSpacing", "PixelSpacing"):
-        value = ds.get(name)
+        value, where = ds.get(name), None
         if value is None or value == "":
-            continue
+            found = _spacing_in_groups(path, ds, name)
+            if isinstance(found, dict):  # (frames differing: said, and no pitch)
+                return found
+            if found is None:
+                continue
+            value, where = found
         try:
             row, col = (float(v) * 1e-3 for v in value)
         except (TypeError, ValueError):
             return usable_pixel_sizes(path, f"DICOM's {name}", {}, [f"{name} {value!r} is not two numbers"])
         out = usable_pixel_sizes(path, f"DICOM's {name}", {"x_pixel_size": col, "y_pixel_size": row})
-        out["pixel_size_source"] = name
+        out["pixel_size_source"] = name  # (correct's stack rule reads the name alone)
+        if where is not None and "pixel_size_unusable" not in out:
+            out["pixel_size_where"] = where
         return out
     return {}
 
@@ -1044,13 +1085,16 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
     integers and the values fit int32, else float64 (exact for every 32-bit count)."""
     from pydicom.pixels import pixel_array
 
+    # unsigned words are masked to BitsStored here, for every syntax alike (:func:`_stored_bits`)
+    own = {"correct_unused_bits": False} if geometry["dtype"].kind == "u" else {}
     if ds.file_meta.TransferSyntaxUID in compressed_syntaxes():
         stored = compressed_frame(path, ds, geometry, i)
     elif geometry["n"] > 1:
-        stored = pixel_array(ds, index=i)
+        stored = pixel_array(ds, index=i, **own)
     else:
-        stored = pixel_array(ds)
+        stored = pixel_array(ds, **own)
     stored = np.asarray(stored).astype(geometry["dtype"].newbyteorder("="), copy=False)
+    stored = _stored_bits(path, stored, geometry, i)
     if stored.shape != (geometry["rows"], geometry["cols"]):
         # pydicom returns every frame its data holds where fewer are declared (allow_excess_frames)
         raise FormatError(
@@ -1059,6 +1103,40 @@ def dicom_frame(path, ds, geometry: dict, i: int) -> np.ndarray:
             f"holds more frames than its NumberOfFrames ({ds.get('NumberOfFrames', 'absent: 1')}) declares",
         )
     return rescaled(stored, geometry["slope"], geometry["intercept"])
+
+
+def _stored_bits(path, words: np.ndarray, geometry: dict, i: int) -> np.ndarray:
+    """Unsigned ``words``' low BitsStored bits, the pixel value DICOM defines (PS3.5 8.1.1: the
+    bits above HighBit are no part of it); where any word had more, one warning a file, naming
+    it. Why: pydicom masked uncompressed words without a word, and a compressed frame's decoded
+    ones were kept (its stream 16-bit for 12-bit counts, as CharLS and OpenJPEG write uint16: the
+    codestream's precision is the word's, not the count's), so one image read two ways. Masked,
+    not refused: such bits are an overlay ACR-NEMA-era writers kept there, or a detector wider
+    than its BitsStored (its values then wrap), and which is not in the file; its counts are
+    read, and the warning says both. Signed words are sign-extended from BitsStored's top bit on
+    both paths already (pydicom's, and :func:`compressed_frame`)."""
+    stored = geometry.get("bits_stored", 0)
+    if words.dtype.kind != "u" or not 0 < stored < words.dtype.itemsize * 8 or words.size == 0:
+        return words
+    top = (1 << stored) - 1
+    peak = int(words.max())  # (no temporary of the frame's size where none is above: the common case)
+    if peak <= top:
+        return words
+    if not geometry.get("bits_above_said"):
+        geometry["bits_above_said"] = True  # once per open file, not once per frame
+        count = int(np.count_nonzero(words > top))
+        said = BitDepthWarning(
+            f"{shown(path)}: {count} of frame {i}'s {words.size} words have bits set above its BitsStored {stored} "
+            f"(values up to {peak} in the words): read as their low {stored} bits, the pixel value DICOM defines "
+            f"(PS3.5 8.1.1), as uncompressed words are read; the bits above are an overlay, or its detector's counts "
+            f"are wider and its BitsStored is wrong (its values then wrapped)"
+        )
+        said.path = str(path)  # the command line shows it once per file, not at each of its opens
+        warnings.warn(said, stacklevel=5)
+    if not words.flags.writeable:
+        return words & words.dtype.type(top)
+    words &= words.dtype.type(top)  # in place: no second frame beside the budget's count
+    return words
 
 
 def rescaled_dtype(dtype, slope, intercept) -> np.dtype:

@@ -570,8 +570,8 @@ def _check_frame_header(path, header: dict, geometry: dict, i: int) -> None:
     """Refuse, before decoding, a frame's codestream that is not the image the DICOM header
     declares: another size (which its decoder would allocate, whatever Rows and Columns say),
     another number of components, or samples wider than BitsAllocated. A precision other than
-    BitsStored is read (writers put 12-bit counts in 16-bit streams): the values are judged
-    against BitsStored as any DICOM's are."""
+    BitsStored is read (writers put 12-bit counts in 16-bit streams): its words' low BitsStored
+    bits, as any DICOM's are (radiokit.io._clinical._stored_bits)."""
     rows, cols, word = geometry["rows"], geometry["cols"], geometry["dtype"].itemsize * 8
     stated = (header["height"], header["width"], header["components"])
     if stated != (rows, cols, 1) or header["precision"] > word:
