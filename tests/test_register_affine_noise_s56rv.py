@@ -30,3 +30,33 @@ def test_the_noise_share_of_a_window_over_a_noise_step_is_its_weighted_mean_not_
     quiet = (slice(48, 144), slice(60, 90))
     assert np.percentile(la[quiet] / floor[quiet], 99) <= 1.0, np.percentile(la[quiet] / floor[quiet], [50, 99])
     assert np.percentile(lt[quiet] / floor[quiet], 99) <= 1.0, np.percentile(lt[quiet] / floor[quiet], [50, 99])
+
+
+def test_the_robust_noise_estimate_reads_an_integer_frames_noise():
+    # A raw detector frame is integers: its diagonal second difference takes levels half a count
+    # apart, and a tile's median of |h| snaps to one of them (at 1 count of noise, 0.5x the
+    # variance; at 2 counts, 1.2x). The noise is the Gaussian's and the rounding's (1/12 count^2):
+    # over ~400 tiles the frame's median estimate is that within its sampling error (~0.5 %) and
+    # what a level's values spread over its bin leave (<~5 % for noise of a count or more)
+    rng = np.random.default_rng(31)
+    for s in (1.0, 1.5, 2.0):
+        f = np.round(1000 + s * rng.standard_normal((480, 480))).astype(np.float32)
+        ratio = float(np.median(C.robust_noise_map(f, S) ** 2)) / (s * s + 1 / 12)
+        assert abs(ratio - 1) < 0.08, (s, ratio)
+
+
+def test_a_textureless_interior_of_an_integer_frame_stays_unobserved_under_the_affine_bound():
+    # The consequence: a smooth disc of 200 counts on an integer frame with 1 count of noise, no
+    # texture. The noise's share read at half its variance left the other half in the moments as
+    # structure: 38-58 % of the interior read observed under the affine bound, where the rim's
+    # curvature alone reaches it (the same disc at 2 counts: 0 %)
+    n = 224
+    yy, xx = np.mgrid[:n, :n].astype(np.float64)
+    r = np.hypot(yy - n / 2, xx - n / 2)
+    body = 1 / (1 + np.exp((r - 90) / 1.5))
+    f = np.round(1000 + 200 * body + np.random.default_rng(41).standard_normal(body.shape)).astype(np.float32)
+    ob = C.observability(f, S, affine_prior=0.01)
+    inner = r < 85
+    assert (ob.translation[inner] >= 0.5).mean() > 0.5  # the rim's credit, which the bound takes away
+    share = float((ob.confidence[inner] >= 0.5).mean())
+    assert share < 0.05, share
