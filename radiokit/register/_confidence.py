@@ -287,7 +287,23 @@ def robust_noise_map(f, window):
     def tiles(x):
         return np.pad(x, pad, mode="symmetric").reshape(t0, side, t1, side).transpose(0, 2, 1, 3).reshape(t0, t1, -1)
 
-    med = 1.4826 * np.median(tiles(h), axis=-1)
+    th = tiles(h)
+    med = np.median(th, axis=-1)
+    # a quantised image's |h| takes a few levels (steps of half a count): the median snaps to one,
+    # which read an integer frame's variance 0.5-1.65x (the noise's share underestimated: noise
+    # read as structure). Where the median is a level many values hold, the grouped median: the
+    # level's values spread evenly over its bin (half-way to the next level either side, from 0 at 0)
+    m = med[..., None]
+    eq = np.count_nonzero(th == m, axis=-1)
+    tied = eq > 1
+    if tied.any():
+        below = np.count_nonzero(th < m, axis=-1)
+        step = np.min(np.where(th > m, th, np.float32(np.inf)), axis=-1) - med
+        ok = tied & (step < 1e37)  # (not the flat blocks' stand-in)
+        lo = np.maximum(med - 0.5 * step, 0)
+        grouped = lo + (med + 0.5 * step - lo) * (0.5 * th.shape[-1] - below) / np.maximum(eq, 1)
+        med = np.where(ok, grouped, med)
+    med = 1.4826 * med
     share = tiles(live).mean(axis=-1)
     if (share < 0.25).any():
         # the noise map's value at the tiles' centres (computed only here: 5 ms at 560 x 560)
