@@ -287,7 +287,23 @@ def robust_noise_map(f, window):
     def tiles(x):
         return np.pad(x, pad, mode="symmetric").reshape(t0, side, t1, side).transpose(0, 2, 1, 3).reshape(t0, t1, -1)
 
-    med = 1.4826 * np.median(tiles(h), axis=-1)
+    th = tiles(h)
+    med = np.median(th, axis=-1)
+    # a quantised image's |h| takes a few levels (steps of half a count): the median snaps to one,
+    # which read an integer frame's variance 0.5-1.65x (the noise's share underestimated: noise
+    # read as structure). Where the median is a level many values hold, the grouped median: the
+    # level's values spread evenly over its bin (half-way to the next level either side, from 0 at 0)
+    m = med[..., None]
+    eq = np.count_nonzero(th == m, axis=-1)
+    tied = eq > 1
+    if tied.any():
+        below = np.count_nonzero(th < m, axis=-1)
+        step = np.min(np.where(th > m, th, np.float32(np.inf)), axis=-1) - med
+        ok = tied & (step < 1e37)  # (not the flat blocks' stand-in)
+        lo = np.maximum(med - 0.5 * step, 0)
+        grouped = lo + (med + 0.5 * step - lo) * (0.5 * th.shape[-1] - below) / np.maximum(eq, 1)
+        med = np.where(ok, grouped, med)
+    med = 1.4826 * med
     share = tiles(live).mean(axis=-1)
     if (share < 0.25).any():
         # the noise map's value at the tiles' centres (computed only here: 5 ms at 560 x 560)
@@ -501,7 +517,7 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1, project=True) -> tupl
     Fisher matrix, ``F_tt - F_tA (F_AA + P)^-1 F_At``. Both per unit noise variance and per unit
     window weight (the map's normalised window means), so ``window area x lmin / (2 sigma^2)`` is
     the information. ``gy, gx``: the gradients the map uses; ``bias``: the noise's share of each
-    squared derivative (per pixel, or a scalar); ``precision``: ``P``'s diagonal, the prior
+    squared derivative (per pixel, each moment taking its window mean of it, or a scalar); ``precision``: ``P``'s diagonal, the prior
     precision of each element of ``A`` in units of ``(px per window sigma)^-2`` per unit window
     weight and noise variance (per pixel, or a scalar; 0: no prior). ``step``: both on every
     ``step``-th pixel from ``step // 2`` in each direction (the 6 x 6 systems cost 10x the filters
@@ -540,8 +556,14 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1, project=True) -> tupl
     params = (("y", (0, 0)), ("x", (0, 0)), ("y", (1, 0)), ("y", (0, 1)), ("x", (1, 0)), ("x", (0, 1)))
     mu20 = float(ks[2].sum() * ks[0].sum())  # the window's second moment along one axis (u in sigmas)
     shape = gy[sub].shape
+    # the noise's share of a weighted moment is the window's same weighted mean of the local
+    # variance, not the centre's: where the noise varies across a window (a body quieter than the
+    # air beside it, Poisson-like) the centre's left the louder part's excess in the moments as
+    # structure, and a textureless interior beside a rim read observed
+    bias_moment = {}
     if np.ndim(bias):
-        bias = np.asarray(bias, np.float64)[sub]
+        b32 = np.asarray(bias, np.float32)
+        bias_moment = {ab: filt(b32, *ab) for ab in ((0, 0), (2, 0), (0, 2))}
     if np.ndim(precision):
         precision = np.asarray(precision, np.float64)[sub]
     F = np.empty(shape + (6, 6))
@@ -553,7 +575,7 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1, project=True) -> tupl
             ab = (pi[0] + pj[0], pi[1] + pj[1])
             v = mom[(key, ab)] - first[(ci, pi)] * first[(cj, pj)]
             if ci == cj and pi == pj:  # the noise's share of a squared derivative
-                v = v - bias * (1.0 if pi == (0, 0) else mu20)
+                v = v - (bias_moment[ab] if bias_moment else bias * (1.0 if pi == (0, 0) else mu20))
             F[..., i, j] = F[..., j, i] = v
     eye = np.eye(4)
     prec = np.asarray(precision, np.float64)
@@ -713,7 +735,7 @@ def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2=None):
     gy, gx, inside = grads
     bias = _deriv_noise_var(1.0) * (sig2 if bias_sig2 is None else bias_sig2)
     if inside is not None:
-        bias = bias * _window(inside, spacing)
+        bias = bias * inside  # (affine_lmins takes its window means: none outside the mask)
     area = _window_area(spacing)
     s2 = sig2 + floor2
     precision = 2 * s2 / (area * (float(prior) * spacing) ** 2)  # 1 / (prior x spacing)^2 in the moments' units
