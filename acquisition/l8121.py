@@ -930,8 +930,9 @@ class _RampWatch:
       down (250 -> 100 µA) or of the other value (the voltage alone) whose beam drops reads no
       climb: before, only the stable wait's time-out caught it (up to ``stable_timeout_s``, 15 s
       by default, with the tube on), since a fall may be the start of a ramp from zero. The count
-      starts again while the value still falls (by more than two jitters since it started: a unit
-      falling to nothing, at a speed L8121.md does not give), and ends at a reading at or over
+      starts again while the value still falls (by more than two jitters since it started, or a
+      quarter of that value at a low one: a unit falling to nothing, at a speed L8121.md does not
+      give), and ends at a reading at or over
       the bound (a ramp from zero crosses it once, upward)."""
 
     def __init__(self, lower, higher, jitter, drop_fraction: float, *, after_xon: bool, dwell_s):
@@ -979,9 +980,16 @@ class _RampWatch:
                 if not math.isnan(v):
                     self.under_since[i] = None
                 continue
-            if self.under_since[i] is None or v < self.under_from[i] - 2 * self.jitter[i]:
+            start = self.under_from[i]
+            if self.under_since[i] is None or v < start - min(2 * self.jitter[i], max(_READING_STEP / 2, start / 4)):
                 # (again while it still falls, by more than a reading's jitter: a fall under way,
-                # of a unit that falls to nothing before its ramp from zero, not a beam stopped)
+                # of a unit that falls to nothing before its ramp from zero, not a beam stopped.
+                # Low down, by a quarter of where it started again, or a reading's step there:
+                # two jitters at the higher setting (2 x 5 µA) are the whole drop bound at 10 µA,
+                # and a fall from 5 µA to nothing counted as a beam stopped there, called dropped
+                # where the same fall from 250 µA was not (review s56rvacq). A quarter each time
+                # still bounds how often a value stuck under the bound starts again: a few times,
+                # the meter's flicker at its level smaller than that, then a step is more)
                 self.under_since[i], self.under_from[i] = now, v
             under = now - self.under_since[i]
             if under > allowed + 2 * self.gap:

@@ -104,6 +104,50 @@ def test_a_unit_that_falls_to_nothing_slower_than_it_ramps_up_is_not_called_drop
     _changes_without_a_fault(model, dialect, *CHANGES["kv_only"])
 
 
+@pytest.mark.parametrize("change", [((60, 10), (70, 10)), ((60, 10), (60, 250))], ids=["kv_only", "up"])
+def test_a_unit_falling_slowly_from_a_low_current_is_not_called_dropped(change):
+    """The same slow fall as above (a unit that falls to nothing over many of its ramps up, then
+    ramps again from zero), from a low current: 10 µA, its drop bound 5 µA. The count of a value
+    under the bound started again only after a fall of two jitters (2 x 5 µA, the tolerance at
+    the higher setting), more than the whole bound: the fall from 5 µA to nothing was counted as
+    a beam stopped there, and a healthy unit was switched off (review s56rvacq: "below 50% of the
+    set 10 µA for 0.21 s", allowed 0.10 s) where the same fall at 250 µA was not. Dialect A only:
+    its short reading makes the allowance the tightest (the rule is the same in B)."""
+    model = _unit("A", "zero", fall_s=0.8, jitter=0.019, ramp_s=RAMP_S / 4)
+    _changes_without_a_fault(model, "A", *change)
+
+
+@pytest.mark.parametrize("setting", [10, 20, 40, 250])
+def test_the_count_under_the_drop_bound_starts_where_a_fall_ends_at_any_current(setting):
+    """The ramp's judgement alone (``_RampWatch``), fed the whole-µA readings of a current that
+    falls from ``setting`` to nothing over 10 s and climbs back to it over 1 s (a unit that ramps
+    again from zero after a change of the voltage alone, falling over ten of its ramps), given 2 s
+    under the drop bound (twice its ramp after XON): the fall
+    is a fall under way however low the current, and only the time from its end counts (about
+    half a second here, the climb to the bound). A beam that stays at nothing after the fall is
+    still dropped once the 2 s are over."""
+    from acquisition.l8121 import SourceConfig, _RampWatch
+
+    c = SourceConfig()
+    jitter = (c.tolerance_kv(60), c.tolerance_ua(setting))
+    fall, climb, dt = 10.0, 1.0, 0.05
+
+    def watch():
+        return _RampWatch((60, setting), (60, setting), jitter, 0.5, after_xon=False, dwell_s=(2.0, 2.0))
+
+    def current(t):
+        return round(setting * max(0.0, 1 - t / fall) if t < fall else setting * min(1.0, (t - fall) / climb))
+
+    healthy, stuck = watch(), watch()
+    times = [k * dt for k in range(int((fall + climb) / dt) + 1)]
+    assert [why for t in times if (why := healthy.see(60, current(t), t))] == []
+    # stuck at nothing from the fall's end: dropped 2 s (and two reading gaps) after it, not later
+    times = [k * dt for k in range(int((fall + 3.0) / dt) + 1)]
+    said = [(t, why) for t in times if (why := stuck.see(60, current(t) if t < fall else 0, t))]
+    assert said and "measured current 0 µA" in said[0][1]
+    assert said[0][0] - fall <= 2.0 + 2 * dt + dt + 1e-9, said[0]
+
+
 def _changes_without_a_fault(model: L8121Model, dialect: str, before, after) -> None:
     """on(*before), then set_values(*after) while a beam monitor polls check(): no fault from
     either, the beam stable at ``after``, then switched off."""
