@@ -1779,6 +1779,7 @@ class L8121:
         # while set_values() changes the beam: the ramp's judgement, shared by its wait and a beam
         # monitor's check() in another thread (_RampWatch); None otherwise
         self._ramp_watch: _RampWatch | None = None
+        self._changes = 0  # how many such changes have begun (check(): a reading that outlived one)
         # what the last on() saw of its ramp from zero: (seconds from XON's echo to the stable
         # reading, the (kV, µA) set, their tolerances), the unit's own measure of how fast it ramps
         self._xon_ramp: tuple[float, tuple[int, int], tuple[float, float]] | None = None
@@ -3002,6 +3003,7 @@ class L8121:
                 # beam monitor's check() meanwhile judges by both settings, as the wait does
                 self._beam = (kv_i, ua_i)
                 self._ramp_watch = self._watch_ramp((kv_i, ua_i), after_xon=False)
+                self._changes += 1
             if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
                 self._do(voltage, kv_i)
                 self._do(current, ua_i)
@@ -3814,17 +3816,25 @@ class L8121:
         with self._turns:
             pending = self._off_thread not in (None, threading.get_ident())
             self._local.epoch = -1 if pending else self._routine_epoch
+        # the change under way as the reading starts, and how many have begun (set_values())
+        changing, changes = self._ramp_watch, self._changes
         try:
             state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
             # while set_values() ramps the beam to a new setting, its values are judged as its wait
             # judges them (the same watch): by the lower setting's drop bound alone, a unit that
             # ramps again from zero read dropped at once, and this poll switched it off
             watch = self._ramp_watch if self._beam is not None else None
-            ramping = watch is not None
+            # a reading of a change's ramp that is judged once the change is over (this thread run
+            # again only after set_values() returned, a change begun and over during a reading of
+            # B's several exchanges) tells nothing of the beam the change then found stable: its
+            # state alone. By the new setting alone, it was called dropped (review s56rvacq); by the
+            # change's watch, out of order after the stable readings, fallen back
+            stale = watch is None and (changing is not None or changes != self._changes)
+            ramping = watch is not None or stale
             if self._beam is not None and self._evident_fault(state, kv, ua, ramping=ramping):
                 # XOF first, then SIN for the message
                 self._trip(self._reason_after_off(state, kv, ua, ramping=ramping))
-            why = watch.see(kv, ua, time.monotonic()) if ramping else None
+            why = watch.see(kv, ua, time.monotonic()) if watch is not None else None
             if why:
                 self._trip(why)
             if self._beam is None and state == SourceState.OVERLOAD:

@@ -222,3 +222,52 @@ def test_a_monitor_polling_while_a_change_drops_the_beam_leaves_the_tube_off_and
     # (the standby after the monitor's XOF), the current's fall said by the monitor alone
     assert "measured current 0 µA" in str(caught.value), (str(caught.value), faults)
     assert isinstance(caught.value, SourceFault) and "X-rays switched off" in str(caught.value)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges_it_when_late(dialect):
+    """A beam monitor's check() reads the beam while set_values() ramps it (a unit that ramps
+    again from zero: 0 µA of the old 250 and the new 100), and is judged only after the change has
+    returned (the monitor's thread not run meanwhile: a loaded machine, the GIL). The reading was
+    judged then by the new setting alone, the change's judgement gone with it: "beam dropped:
+    measured current 5 µA, below 50% of the set 100 µA", a healthy unit switched off after a change
+    that succeeded (review s56rvacq). The thread's delay is the one thing faked (no test can make a scheduler stall
+    a thread between two lines): a wrapper holds the monitor's reading until the change is over."""
+    model = _unit(dialect, "zero", ramp_s=0.2)
+    held, done, faults = [], threading.Event(), []
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 250)
+        reading = src._beam_reading
+
+        def late_reading(**kw):
+            state, kv, ua = reading(**kw)
+            if threading.current_thread() is not threading.main_thread() and ua < 50 and not held:
+                held.append(ua)  # a reading of the change's ramp, judged once the change is over
+                done.wait(5)
+            return state, kv, ua
+
+        src._beam_reading = late_reading
+
+        def monitor():
+            while not done.is_set():
+                try:
+                    src.check()
+                except Exception as exc:  # recorded: the assertion names it
+                    faults.append(exc)
+                    return
+                time.sleep(src.config.poll_s / 2)
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        try:
+            src.set_values(60, 100)
+        finally:
+            done.set()
+            poller.join()
+        try:
+            assert held, "the monitor read no value of the ramp"
+            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        finally:
+            src.off()
+    assert not model.xray_on
