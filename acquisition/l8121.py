@@ -2591,6 +2591,11 @@ class L8121:
                 and isinstance(self.off_failed.__cause__, NoReply)
             ):
                 raise NoReply(f"{shown_name(self.port)}: {line} not sent: the controller did not answer the switch-off")
+            trips = getattr(self._local, "trips", None)
+            if trips is not None and trips != self._trips:  # (set_values()'s change while on)
+                raise DeviceError(
+                    f"{shown_name(self.port)}: {line} not sent: another thread switched X-rays off for a fault"
+                )
             epoch = getattr(self._local, "epoch", None)
             if epoch is not None and epoch != self._routine_epoch:
                 raise SwitchedOff(
@@ -3004,18 +3009,32 @@ class L8121:
                 self._beam = (kv_i, ua_i)
                 self._ramp_watch = self._watch_ramp((kv_i, ua_i), after_xon=False)
                 self._changes += 1
-            if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
-                self._do(voltage, kv_i)
-                self._do(current, ua_i)
-            else:
-                self._do(current, ua_i)
-                self._do(voltage, kv_i)
+            trips = self._trips  # (a beam monitor's trip meanwhile: _tripped_elsewhere)
+            order = [(voltage, kv_i), (current, ua_i)]
+            if kv_i * old_ua / 1000 > min(self.config.watts_max, RATINGS.watts_max):
+                order.reverse()
+            for name, value in order:
+                # a beam monitor's check() switched off for a fault meanwhile: no setting sent to
+                # the tube it switched off (_take_turn), and its cause said (B's CUR, for a tube
+                # on only, said "refused by the controller", the cause said by the monitor alone)
+                # (a DeviceError only: a stop, KeyboardInterrupt, stays a stop and waits for nothing)
+                self._local.trips = trips if beam_on else None
+                try:
+                    self._do(name, value)
+                except DeviceError:
+                    if beam_on:
+                        self._raise_tripped_elsewhere(trips)
+                    raise
+                finally:
+                    self._local.trips = None
+                if beam_on:
+                    self._raise_tripped_elsewhere(trips)
             if not beam_on:
                 # the next command may be an X-ray command (on(), a warm-up): it goes only after the
                 # controller has read back what it will emit at (a wrong voltage_scale shows here)
                 self._read_back(kv_i, ua_i)
             if beam_on:
-                self._wait_stable(kv_i, ua_i, time.monotonic(), watch=self._ramp_watch)
+                self._wait_stable(kv_i, ua_i, time.monotonic(), watch=self._ramp_watch, trips=trips)
         except BaseException:
             if beam_on:
                 self._off_quietly()
@@ -3519,27 +3538,32 @@ class L8121:
         return "controller not ready" if closed else "controller not ready: the interlock is open (close it first)"
 
     def _wait_stable(
-        self, kv: int, ua: int, t0: float, *, after_xon: bool = False, watch: _RampWatch | None = None
+        self,
+        kv: int,
+        ua: int,
+        t0: float,
+        *,
+        after_xon: bool = False,
+        watch: _RampWatch | None = None,
+        trips: int | None = None,
     ) -> dict[str, Any]:
         """Poll until the measured values are within tolerance of ``kv``, ``ua``. ``after_xon``: the
         state may still read standby for ``xon_start_s`` (never once it has read X-rays on).
         ``watch``: the ramp's judgement (:class:`_RampWatch`), shared with a beam monitor's
-        :meth:`check` meanwhile (set_values()'s); None: one of the wait's own."""
+        :meth:`check` meanwhile (set_values()'s); None: one of the wait's own. ``trips``: the count
+        of trips (:attr:`_trips`) before the change began (another thread's since: its cause)."""
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
         watch = watch if watch is not None else self._watch_ramp((kv, ua), after_xon=after_xon)
-        trips = self._trips  # (another thread's trip meanwhile: _tripped_elsewhere)
+        trips = self._trips if trips is None else trips  # (another thread's trip meanwhile)
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
-            if self._trips != trips:
-                # another thread (a beam monitor's check()) switches off for a fault meanwhile: its
-                # cause, not the standby this reading may have found after its XOF ("beam dropped:
-                # state STANDBY" was set_values()'s error, the real cause said by the monitor alone)
-                elsewhere = self._tripped_elsewhere()
-                if elsewhere is not None:
-                    raise elsewhere
+            # another thread (a beam monitor's check()) switches off for a fault meanwhile: its
+            # cause, not the standby this reading may have found after its XOF ("beam dropped:
+            # state STANDBY" was set_values()'s error, the real cause said by the monitor alone)
+            self._raise_tripped_elsewhere(trips)
             seen_on |= state == SourceState.XRAY_ON
             if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, t0):
                 time.sleep(c.poll_s)
@@ -3611,6 +3635,14 @@ class L8121:
                 for low, s, t in zip(lower, setting, tol)
             )
         return _RampWatch(lower, higher, jitter, c.beam_drop_fraction, after_xon=after_xon, dwell_s=dwell)
+
+    def _raise_tripped_elsewhere(self, trips: int) -> None:
+        """Raise the fault another thread switched off for since :attr:`_trips` read ``trips``
+        (:meth:`_tripped_elsewhere`), if it made one."""
+        if self._trips != trips:
+            elsewhere = self._tripped_elsewhere()
+            if elsewhere is not None:
+                raise elsewhere
 
     def _tripped_elsewhere(self) -> SourceFault | None:
         """The fault another thread switches off for while this one waits for a ramp, as this

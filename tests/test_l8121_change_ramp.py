@@ -271,3 +271,47 @@ def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges
         finally:
             src.off()
     assert not model.xray_on
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("fault", ["open_interlock", "overload"])
+def test_a_fault_a_monitor_trips_between_a_changes_commands_is_what_the_change_says(dialect, fault):
+    """The interlock opens (or the tube overloads) as the change's first command is answered,
+    and a beam monitor's check() switches off for it before the second goes. set_values() then
+    sent its second command to the tube switched off, and said what that got: B's CUR, for a
+    tube on only, "CUR 250 refused by the controller (ERROR)", the cause said by the monitor
+    alone (review s56rvacq). It says the monitor's cause, and sends no setting after its XOF."""
+    model = _unit(dialect, "here")
+    faults, stop = [], threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 250)
+
+        def monitor():
+            while not stop.wait(0.01):
+                try:
+                    src.check()
+                except Exception as exc:
+                    faults.append(exc)
+                    return
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        n = len(model.commands)
+        model.inject_after("HIV", getattr(model, fault))
+        # the first command's reply late: the monitor's next poll is queued by then, and goes
+        # before the change's second command (one refused before any poll said only "refused")
+        model.delay_once(0.15, "HIV")
+        try:
+            with pytest.raises(SourceFault) as caught:
+                src.set_values(70, 250)
+        finally:
+            stop.set()
+            poller.join()
+        sent = model.commands[n:]
+        assert not model.xray_on and src.confirmed_off is not None, sent
+    words = "interlock open" if fault == "open_interlock" else "overload"
+    assert words in str(caught.value) and "X-rays switched off" in str(caught.value), (str(caught.value), sent)
+    # nothing set after the switch-off (the monitor's XOF, or the change's own if it saw it first)
+    after_off = sent[sent.index("XOF") :]
+    assert not [c for c in after_off if c.split()[0] in ("HIV", "CUR")], sent
