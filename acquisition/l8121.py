@@ -949,11 +949,17 @@ class _RampWatch:
         self.gap = 0.0  # the longest time between two readings
 
     def see(self, kv: float, ua: float, now: float) -> str | None:
-        """Judge a reading (NaN: not read, left out) taken at ``now`` (``time.monotonic()``)."""
+        """Judge a reading (NaN: not read, left out) taken at ``now`` (``time.monotonic()``); one
+        taken before a reading already judged, above the setting only."""
         with self._lock:
             above = _beam_above(kv, ua, *self.higher, self.drop_fraction)
             if above is not None:
                 return f"beam above the setting: {above}"
+            if self._last is not None and now < self._last:
+                # read before one already judged (the other thread's, judged first): its values are
+                # the past of the ramp. As the latest, a climb's start read after its later values
+                # was called a fall ("measured current 39 µA after 72 µA", review s56rvacq)
+                return None
             if self._last is not None:
                 self.gap = max(self.gap, now - self._last)
             self._last = now
@@ -2506,6 +2512,7 @@ class L8121:
             seen = check.reconnects if check is not None else None
             try:
                 reply = self._transport.query(line)
+                self._local.replied_at = time.monotonic()  # (a reading's time: _reading_time)
             except DeviceError as exc:
                 error = exc
                 self._claim_off(me)  # before another thread's queued exchange gets the link
@@ -2793,6 +2800,11 @@ class L8121:
         if stop_early and state != SourceState.XRAY_ON:
             return state, math.nan, math.nan
         return state, self._read("voltage_kv"), self._read("current_ua")
+
+    def _reading_time(self) -> float:
+        """When this thread's last reply came (``time.monotonic()``): a reading's time, for a ramp's
+        judgement that two threads feed (:class:`_RampWatch`), not when it is judged."""
+        return getattr(self._local, "replied_at", None) or time.monotonic()
 
     def measured(self) -> tuple[float, float]:
         """Measured tube voltage (kV) and current (µA) (A: ``SAR``; B: ``SHV``, ``SCU``)."""
@@ -3573,7 +3585,7 @@ class L8121:
             # a ramp that passes the setting, falls back after climbing, or stays under the drop
             # bound longer than any ramp of this unit could (_RampWatch): caught at that reading,
             # not by the stable wait's time-out (up to stable_timeout_s with the tube on)
-            why = watch.see(m_kv, m_ua, time.monotonic())
+            why = watch.see(m_kv, m_ua, self._reading_time())
             if why:
                 self._trip(why)
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
@@ -3866,7 +3878,7 @@ class L8121:
             if self._beam is not None and self._evident_fault(state, kv, ua, ramping=ramping):
                 # XOF first, then SIN for the message
                 self._trip(self._reason_after_off(state, kv, ua, ramping=ramping))
-            why = watch.see(kv, ua, time.monotonic()) if watch is not None else None
+            why = watch.see(kv, ua, self._reading_time()) if watch is not None else None
             if why:
                 self._trip(why)
             if self._beam is None and state == SourceState.OVERLOAD:

@@ -315,3 +315,60 @@ def test_a_fault_a_monitor_trips_between_a_changes_commands_is_what_the_change_s
     # nothing set after the switch-off (the monitor's XOF, or the change's own if it saw it first)
     after_off = sent[sent.index("XOF") :]
     assert not [c for c in after_off if c.split()[0] in ("HIV", "CUR")], sent
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_monitors_reading_judged_after_a_later_one_of_the_wait_is_not_a_fall(dialect):
+    """During a change up (100 -> 250 µA, a unit that ramps again from zero), a beam monitor's
+    reading of the climb's start (under the drop bound, 50 µA) is judged only after the change's
+    wait has judged a later, higher one (the monitor's thread not run meanwhile). The shared watch
+    took it for the latest and called the climb a fall: "beam dropped while ramping up: measured
+    current 39 µA after 72 µA" (review s56rvacq). A reading is judged by when it was read. The thread's delay is the
+    one thing faked, as above: a wrapper holds the monitor's reading until the wait is past it."""
+    model = _unit(dialect, "zero", ramp_s=0.4)
+    held, seen, faults, done = [], [], [], threading.Event()
+    passed = threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 100)
+        reading = src._beam_reading
+
+        def ordered_late(**kw):
+            state, kv, ua = reading(**kw)
+            if threading.current_thread() is threading.main_thread():
+                seen.append(ua)
+                if held and ua > held[0] + 2 * src.config.tolerance_ua(250) + 1:
+                    passed.set()
+                    time.sleep(2 * src.config.poll_s)  # the wait has judged it, not yet stable
+            elif src._ramp_watch is not None and ua < 45 and not held:
+                held.append(ua)
+                passed.wait(5)  # judged after the wait's higher reading
+            return state, kv, ua
+
+        src._beam_reading = ordered_late
+
+        def monitor():
+            while not done.is_set():
+                try:
+                    src.check()
+                except Exception as exc:  # recorded: the assertion names it
+                    faults.append(exc)
+                    return
+                time.sleep(src.config.poll_s / 2)
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        try:
+            src.set_values(60, 250)
+        except DeviceError as exc:
+            faults.append(exc)
+        finally:
+            done.set()
+            passed.set()
+            poller.join()
+        try:
+            assert held and passed.is_set(), (held, seen)
+            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        finally:
+            src.off()
+    assert not model.xray_on
