@@ -2599,7 +2599,9 @@ class L8121:
             ):
                 raise NoReply(f"{shown_name(self.port)}: {line} not sent: the controller did not answer the switch-off")
             trips = getattr(self._local, "trips", None)
-            if trips is not None and trips != self._trips:  # (set_values()'s change while on)
+            # (set_values()'s change while on; never this thread's own switch-off, a fail-safe's
+            # inside a failed command of the change)
+            if trips is not None and trips != self._trips and self._off_thread != me:
                 raise DeviceError(
                     f"{shown_name(self.port)}: {line} not sent: another thread switched X-rays off for a fault"
                 )
