@@ -930,8 +930,9 @@ class _RampWatch:
       down (250 -> 100 µA) or of the other value (the voltage alone) whose beam drops reads no
       climb: before, only the stable wait's time-out caught it (up to ``stable_timeout_s``, 15 s
       by default, with the tube on), since a fall may be the start of a ramp from zero. The count
-      starts again while the value still falls (by more than two jitters since it started: a unit
-      falling to nothing, at a speed L8121.md does not give), and ends at a reading at or over
+      starts again while the value still falls (by more than two jitters since it started, or a
+      quarter of that value at a low one: a unit falling to nothing, at a speed L8121.md does not
+      give), and ends at a reading at or over
       the bound (a ramp from zero crosses it once, upward)."""
 
     def __init__(self, lower, higher, jitter, drop_fraction: float, *, after_xon: bool, dwell_s):
@@ -948,11 +949,17 @@ class _RampWatch:
         self.gap = 0.0  # the longest time between two readings
 
     def see(self, kv: float, ua: float, now: float) -> str | None:
-        """Judge a reading (NaN: not read, left out) taken at ``now`` (``time.monotonic()``)."""
+        """Judge a reading (NaN: not read, left out) taken at ``now`` (``time.monotonic()``); one
+        taken before a reading already judged, above the setting only."""
         with self._lock:
             above = _beam_above(kv, ua, *self.higher, self.drop_fraction)
             if above is not None:
                 return f"beam above the setting: {above}"
+            if self._last is not None and now < self._last:
+                # read before one already judged (the other thread's, judged first): its values are
+                # the past of the ramp. As the latest, a climb's start read after its later values
+                # was called a fall ("measured current 39 µA after 72 µA", review s56rvacq)
+                return None
             if self._last is not None:
                 self.gap = max(self.gap, now - self._last)
             self._last = now
@@ -979,9 +986,16 @@ class _RampWatch:
                 if not math.isnan(v):
                     self.under_since[i] = None
                 continue
-            if self.under_since[i] is None or v < self.under_from[i] - 2 * self.jitter[i]:
+            start = self.under_from[i]
+            if self.under_since[i] is None or v < start - min(2 * self.jitter[i], max(_READING_STEP / 2, start / 4)):
                 # (again while it still falls, by more than a reading's jitter: a fall under way,
-                # of a unit that falls to nothing before its ramp from zero, not a beam stopped)
+                # of a unit that falls to nothing before its ramp from zero, not a beam stopped.
+                # Low down, by a quarter of where it started again, or a reading's step there:
+                # two jitters at the higher setting (2 x 5 µA) are the whole drop bound at 10 µA,
+                # and a fall from 5 µA to nothing counted as a beam stopped there, called dropped
+                # where the same fall from 250 µA was not (review s56rvacq). A quarter each time
+                # still bounds how often a value stuck under the bound starts again: a few times,
+                # the meter's flicker at its level smaller than that, then a step is more)
                 self.under_since[i], self.under_from[i] = now, v
             under = now - self.under_since[i]
             if under > allowed + 2 * self.gap:
@@ -1771,6 +1785,7 @@ class L8121:
         # while set_values() changes the beam: the ramp's judgement, shared by its wait and a beam
         # monitor's check() in another thread (_RampWatch); None otherwise
         self._ramp_watch: _RampWatch | None = None
+        self._changes = 0  # how many such changes have begun (check(): a reading that outlived one)
         # what the last on() saw of its ramp from zero: (seconds from XON's echo to the stable
         # reading, the (kV, µA) set, their tolerances), the unit's own measure of how fast it ramps
         self._xon_ramp: tuple[float, tuple[int, int], tuple[float, float]] | None = None
@@ -2497,6 +2512,7 @@ class L8121:
             seen = check.reconnects if check is not None else None
             try:
                 reply = self._transport.query(line)
+                self._local.replied_at = time.monotonic()  # (a reading's time: _reading_time)
             except DeviceError as exc:
                 error = exc
                 self._claim_off(me)  # before another thread's queued exchange gets the link
@@ -2582,6 +2598,13 @@ class L8121:
                 and isinstance(self.off_failed.__cause__, NoReply)
             ):
                 raise NoReply(f"{shown_name(self.port)}: {line} not sent: the controller did not answer the switch-off")
+            trips = getattr(self._local, "trips", None)
+            # (set_values()'s change while on; never this thread's own switch-off, a fail-safe's
+            # inside a failed command of the change)
+            if trips is not None and trips != self._trips and self._off_thread != me:
+                raise DeviceError(
+                    f"{shown_name(self.port)}: {line} not sent: another thread switched X-rays off for a fault"
+                )
             epoch = getattr(self._local, "epoch", None)
             if epoch is not None and epoch != self._routine_epoch:
                 raise SwitchedOff(
@@ -2779,6 +2802,11 @@ class L8121:
         if stop_early and state != SourceState.XRAY_ON:
             return state, math.nan, math.nan
         return state, self._read("voltage_kv"), self._read("current_ua")
+
+    def _reading_time(self) -> float:
+        """When this thread's last reply came (``time.monotonic()``): a reading's time, for a ramp's
+        judgement that two threads feed (:class:`_RampWatch`), not when it is judged."""
+        return getattr(self._local, "replied_at", None) or time.monotonic()
 
     def measured(self) -> tuple[float, float]:
         """Measured tube voltage (kV) and current (µA) (A: ``SAR``; B: ``SHV``, ``SCU``)."""
@@ -2994,18 +3022,33 @@ class L8121:
                 # beam monitor's check() meanwhile judges by both settings, as the wait does
                 self._beam = (kv_i, ua_i)
                 self._ramp_watch = self._watch_ramp((kv_i, ua_i), after_xon=False)
-            if kv_i * old_ua / 1000 <= min(self.config.watts_max, RATINGS.watts_max):
-                self._do(voltage, kv_i)
-                self._do(current, ua_i)
-            else:
-                self._do(current, ua_i)
-                self._do(voltage, kv_i)
+                self._changes += 1
+            trips = self._trips  # (a beam monitor's trip meanwhile: _tripped_elsewhere)
+            order = [(voltage, kv_i), (current, ua_i)]
+            if kv_i * old_ua / 1000 > min(self.config.watts_max, RATINGS.watts_max):
+                order.reverse()
+            for name, value in order:
+                # a beam monitor's check() switched off for a fault meanwhile: no setting sent to
+                # the tube it switched off (_take_turn), and its cause said (B's CUR, for a tube
+                # on only, said "refused by the controller", the cause said by the monitor alone)
+                # (a DeviceError only: a stop, KeyboardInterrupt, stays a stop and waits for nothing)
+                self._local.trips = trips if beam_on else None
+                try:
+                    self._do(name, value)
+                except DeviceError:
+                    if beam_on:
+                        self._raise_tripped_elsewhere(trips)
+                    raise
+                finally:
+                    self._local.trips = None
+                if beam_on:
+                    self._raise_tripped_elsewhere(trips)
             if not beam_on:
                 # the next command may be an X-ray command (on(), a warm-up): it goes only after the
                 # controller has read back what it will emit at (a wrong voltage_scale shows here)
                 self._read_back(kv_i, ua_i)
             if beam_on:
-                self._wait_stable(kv_i, ua_i, time.monotonic(), watch=self._ramp_watch)
+                self._wait_stable(kv_i, ua_i, time.monotonic(), watch=self._ramp_watch, trips=trips)
         except BaseException:
             if beam_on:
                 self._off_quietly()
@@ -3509,27 +3552,32 @@ class L8121:
         return "controller not ready" if closed else "controller not ready: the interlock is open (close it first)"
 
     def _wait_stable(
-        self, kv: int, ua: int, t0: float, *, after_xon: bool = False, watch: _RampWatch | None = None
+        self,
+        kv: int,
+        ua: int,
+        t0: float,
+        *,
+        after_xon: bool = False,
+        watch: _RampWatch | None = None,
+        trips: int | None = None,
     ) -> dict[str, Any]:
         """Poll until the measured values are within tolerance of ``kv``, ``ua``. ``after_xon``: the
         state may still read standby for ``xon_start_s`` (never once it has read X-rays on).
         ``watch``: the ramp's judgement (:class:`_RampWatch`), shared with a beam monitor's
-        :meth:`check` meanwhile (set_values()'s); None: one of the wait's own."""
+        :meth:`check` meanwhile (set_values()'s); None: one of the wait's own. ``trips``: the count
+        of trips (:attr:`_trips`) before the change began (another thread's since: its cause)."""
         c = self.config
         tol_kv, tol_ua = c.tolerance_kv(kv), c.tolerance_ua(ua)
         seen_on = False
         watch = watch if watch is not None else self._watch_ramp((kv, ua), after_xon=after_xon)
-        trips = self._trips  # (another thread's trip meanwhile: _tripped_elsewhere)
+        trips = self._trips if trips is None else trips  # (another thread's trip meanwhile)
         while True:
             state, m_kv, m_ua = self._beam_reading(stop_early=True)
             seconds = time.monotonic() - t0
-            if self._trips != trips:
-                # another thread (a beam monitor's check()) switches off for a fault meanwhile: its
-                # cause, not the standby this reading may have found after its XOF ("beam dropped:
-                # state STANDBY" was set_values()'s error, the real cause said by the monitor alone)
-                elsewhere = self._tripped_elsewhere()
-                if elsewhere is not None:
-                    raise elsewhere
+            # another thread (a beam monitor's check()) switches off for a fault meanwhile: its
+            # cause, not the standby this reading may have found after its XOF ("beam dropped:
+            # state STANDBY" was set_values()'s error, the real cause said by the monitor alone)
+            self._raise_tripped_elsewhere(trips)
             seen_on |= state == SourceState.XRAY_ON
             if after_xon and not seen_on and self._coming_on(state, m_kv, m_ua, t0):
                 time.sleep(c.poll_s)
@@ -3539,7 +3587,7 @@ class L8121:
             # a ramp that passes the setting, falls back after climbing, or stays under the drop
             # bound longer than any ramp of this unit could (_RampWatch): caught at that reading,
             # not by the stable wait's time-out (up to stable_timeout_s with the tube on)
-            why = watch.see(m_kv, m_ua, time.monotonic())
+            why = watch.see(m_kv, m_ua, self._reading_time())
             if why:
                 self._trip(why)
             # the beam is on while it ramps: watch the interlock as check() does (B's poll has SIN)
@@ -3601,6 +3649,14 @@ class L8121:
                 for low, s, t in zip(lower, setting, tol)
             )
         return _RampWatch(lower, higher, jitter, c.beam_drop_fraction, after_xon=after_xon, dwell_s=dwell)
+
+    def _raise_tripped_elsewhere(self, trips: int) -> None:
+        """Raise the fault another thread switched off for since :attr:`_trips` read ``trips``
+        (:meth:`_tripped_elsewhere`), if it made one."""
+        if self._trips != trips:
+            elsewhere = self._tripped_elsewhere()
+            if elsewhere is not None:
+                raise elsewhere
 
     def _tripped_elsewhere(self) -> SourceFault | None:
         """The fault another thread switches off for while this one waits for a ramp, as this
@@ -3806,17 +3862,25 @@ class L8121:
         with self._turns:
             pending = self._off_thread not in (None, threading.get_ident())
             self._local.epoch = -1 if pending else self._routine_epoch
+        # the change under way as the reading starts, and how many have begun (set_values())
+        changing, changes = self._ramp_watch, self._changes
         try:
             state, kv, ua = self._beam_reading(stop_early=self._beam is not None)
             # while set_values() ramps the beam to a new setting, its values are judged as its wait
             # judges them (the same watch): by the lower setting's drop bound alone, a unit that
             # ramps again from zero read dropped at once, and this poll switched it off
             watch = self._ramp_watch if self._beam is not None else None
-            ramping = watch is not None
+            # a reading of a change's ramp that is judged once the change is over (this thread run
+            # again only after set_values() returned, a change begun and over during a reading of
+            # B's several exchanges) tells nothing of the beam the change then found stable: its
+            # state alone. By the new setting alone, it was called dropped (review s56rvacq); by the
+            # change's watch, out of order after the stable readings, fallen back
+            stale = watch is None and (changing is not None or changes != self._changes)
+            ramping = watch is not None or stale
             if self._beam is not None and self._evident_fault(state, kv, ua, ramping=ramping):
                 # XOF first, then SIN for the message
                 self._trip(self._reason_after_off(state, kv, ua, ramping=ramping))
-            why = watch.see(kv, ua, time.monotonic()) if ramping else None
+            why = watch.see(kv, ua, self._reading_time()) if watch is not None else None
             if why:
                 self._trip(why)
             if self._beam is None and state == SourceState.OVERLOAD:

@@ -104,6 +104,50 @@ def test_a_unit_that_falls_to_nothing_slower_than_it_ramps_up_is_not_called_drop
     _changes_without_a_fault(model, dialect, *CHANGES["kv_only"])
 
 
+@pytest.mark.parametrize("change", [((60, 10), (70, 10)), ((60, 10), (60, 250))], ids=["kv_only", "up"])
+def test_a_unit_falling_slowly_from_a_low_current_is_not_called_dropped(change):
+    """The same slow fall as above (a unit that falls to nothing over many of its ramps up, then
+    ramps again from zero), from a low current: 10 µA, its drop bound 5 µA. The count of a value
+    under the bound started again only after a fall of two jitters (2 x 5 µA, the tolerance at
+    the higher setting), more than the whole bound: the fall from 5 µA to nothing was counted as
+    a beam stopped there, and a healthy unit was switched off (review s56rvacq: "below 50% of the
+    set 10 µA for 0.21 s", allowed 0.10 s) where the same fall at 250 µA was not. Dialect A only:
+    its short reading makes the allowance the tightest (the rule is the same in B)."""
+    model = _unit("A", "zero", fall_s=0.8, jitter=0.019, ramp_s=RAMP_S / 4)
+    _changes_without_a_fault(model, "A", *change)
+
+
+@pytest.mark.parametrize("setting", [10, 20, 40, 250])
+def test_the_count_under_the_drop_bound_starts_where_a_fall_ends_at_any_current(setting):
+    """The ramp's judgement alone (``_RampWatch``), fed the whole-µA readings of a current that
+    falls from ``setting`` to nothing over 10 s and climbs back to it over 1 s (a unit that ramps
+    again from zero after a change of the voltage alone, falling over ten of its ramps), given 2 s
+    under the drop bound (twice its ramp after XON): the fall
+    is a fall under way however low the current, and only the time from its end counts (about
+    half a second here, the climb to the bound). A beam that stays at nothing after the fall is
+    still dropped once the 2 s are over."""
+    from acquisition.l8121 import SourceConfig, _RampWatch
+
+    c = SourceConfig()
+    jitter = (c.tolerance_kv(60), c.tolerance_ua(setting))
+    fall, climb, dt = 10.0, 1.0, 0.05
+
+    def watch():
+        return _RampWatch((60, setting), (60, setting), jitter, 0.5, after_xon=False, dwell_s=(2.0, 2.0))
+
+    def current(t):
+        return round(setting * max(0.0, 1 - t / fall) if t < fall else setting * min(1.0, (t - fall) / climb))
+
+    healthy, stuck = watch(), watch()
+    times = [k * dt for k in range(int((fall + climb) / dt) + 1)]
+    assert [why for t in times if (why := healthy.see(60, current(t), t))] == []
+    # stuck at nothing from the fall's end: dropped 2 s (and two reading gaps) after it, not later
+    times = [k * dt for k in range(int((fall + 3.0) / dt) + 1)]
+    said = [(t, why) for t in times if (why := stuck.see(60, current(t) if t < fall else 0, t))]
+    assert said and "measured current 0 µA" in said[0][1]
+    assert said[0][0] - fall <= 2.0 + 2 * dt + dt + 1e-9, said[0]
+
+
 def _changes_without_a_fault(model: L8121Model, dialect: str, before, after) -> None:
     """on(*before), then set_values(*after) while a beam monitor polls check(): no fault from
     either, the beam stable at ``after``, then switched off."""
@@ -178,3 +222,153 @@ def test_a_monitor_polling_while_a_change_drops_the_beam_leaves_the_tube_off_and
     # (the standby after the monitor's XOF), the current's fall said by the monitor alone
     assert "measured current 0 µA" in str(caught.value), (str(caught.value), faults)
     assert isinstance(caught.value, SourceFault) and "X-rays switched off" in str(caught.value)
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges_it_when_late(dialect):
+    """A beam monitor's check() reads the beam while set_values() ramps it (a unit that ramps
+    again from zero: 0 µA of the old 250 and the new 100), and is judged only after the change has
+    returned (the monitor's thread not run meanwhile: a loaded machine, the GIL). The reading was
+    judged then by the new setting alone, the change's judgement gone with it: "beam dropped:
+    measured current 5 µA, below 50% of the set 100 µA", a healthy unit switched off after a change
+    that succeeded (review s56rvacq). The thread's delay is the one thing faked (no test can make a scheduler stall
+    a thread between two lines): a wrapper holds the monitor's reading until the change is over."""
+    model = _unit(dialect, "zero", ramp_s=0.2)
+    held, done, faults = [], threading.Event(), []
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 250)
+        reading = src._beam_reading
+
+        def late_reading(**kw):
+            state, kv, ua = reading(**kw)
+            if threading.current_thread() is not threading.main_thread() and ua < 50 and not held:
+                held.append(ua)  # a reading of the change's ramp, judged once the change is over
+                done.wait(5)
+            return state, kv, ua
+
+        src._beam_reading = late_reading
+
+        def monitor():
+            while not done.is_set():
+                try:
+                    src.check()
+                except Exception as exc:  # recorded: the assertion names it
+                    faults.append(exc)
+                    return
+                time.sleep(src.config.poll_s / 2)
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        try:
+            src.set_values(60, 100)
+        finally:
+            done.set()
+            poller.join()
+        try:
+            assert held, "the monitor read no value of the ramp"
+            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        finally:
+            src.off()
+    assert not model.xray_on
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+@pytest.mark.parametrize("fault", ["open_interlock", "overload"])
+def test_a_fault_a_monitor_trips_between_a_changes_commands_is_what_the_change_says(dialect, fault):
+    """The interlock opens (or the tube overloads) as the change's first command is answered,
+    and a beam monitor's check() switches off for it before the second goes. set_values() then
+    sent its second command to the tube switched off, and said what that got: B's CUR, for a
+    tube on only, "CUR 250 refused by the controller (ERROR)", the cause said by the monitor
+    alone (review s56rvacq). It says the monitor's cause, and sends no setting after its XOF."""
+    model = _unit(dialect, "here")
+    faults, stop = [], threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 250)
+
+        def monitor():
+            while not stop.wait(0.01):
+                try:
+                    src.check()
+                except Exception as exc:
+                    faults.append(exc)
+                    return
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        n = len(model.commands)
+        model.inject_after("HIV", getattr(model, fault))
+        # the first command's reply late: the monitor's next poll is queued by then, and goes
+        # before the change's second command (one refused before any poll said only "refused")
+        model.delay_once(0.15, "HIV")
+        try:
+            with pytest.raises(SourceFault) as caught:
+                src.set_values(70, 250)
+        finally:
+            stop.set()
+            poller.join()
+        sent = model.commands[n:]
+        assert not model.xray_on and src.confirmed_off is not None, sent
+    words = "interlock open" if fault == "open_interlock" else "overload"
+    assert words in str(caught.value) and "X-rays switched off" in str(caught.value), (str(caught.value), sent)
+    # nothing set after the switch-off (the monitor's XOF, or the change's own if it saw it first)
+    after_off = sent[sent.index("XOF") :]
+    assert not [c for c in after_off if c.split()[0] in ("HIV", "CUR")], sent
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_monitors_reading_judged_after_a_later_one_of_the_wait_is_not_a_fall(dialect):
+    """During a change up (100 -> 250 µA, a unit that ramps again from zero), a beam monitor's
+    reading of the climb's start (under the drop bound, 50 µA) is judged only after the change's
+    wait has judged a later, higher one (the monitor's thread not run meanwhile). The shared watch
+    took it for the latest and called the climb a fall: "beam dropped while ramping up: measured
+    current 39 µA after 72 µA" (review s56rvacq). A reading is judged by when it was read. The thread's delay is the
+    one thing faked, as above: a wrapper holds the monitor's reading until the wait is past it."""
+    model = _unit(dialect, "zero", ramp_s=0.4)
+    held, seen, faults, done = [], [], [], threading.Event()
+    passed = threading.Event()
+
+    with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
+        src.on(60, 100)
+        reading = src._beam_reading
+
+        def ordered_late(**kw):
+            state, kv, ua = reading(**kw)
+            if threading.current_thread() is threading.main_thread():
+                seen.append(ua)
+                if held and ua > held[0] + 2 * src.config.tolerance_ua(250) + 1:
+                    passed.set()
+                    time.sleep(2 * src.config.poll_s)  # the wait has judged it, not yet stable
+            elif src._ramp_watch is not None and ua < 45 and not held:
+                held.append(ua)
+                passed.wait(5)  # judged after the wait's higher reading
+            return state, kv, ua
+
+        src._beam_reading = ordered_late
+
+        def monitor():
+            while not done.is_set():
+                try:
+                    src.check()
+                except Exception as exc:  # recorded: the assertion names it
+                    faults.append(exc)
+                    return
+                time.sleep(src.config.poll_s / 2)
+
+        poller = threading.Thread(target=monitor)
+        poller.start()
+        try:
+            src.set_values(60, 250)
+        except DeviceError as exc:
+            faults.append(exc)
+        finally:
+            done.set()
+            passed.set()
+            poller.join()
+        try:
+            assert held and passed.is_set(), (held, seen)
+            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        finally:
+            src.off()
+    assert not model.xray_on
