@@ -1660,8 +1660,11 @@ class SerialTransport:
             return False
         if self._owed and self.reply_fits(self._owed[0][0], text):
             return True
-        # past its window too (session 56): L8121.md bounds no reply's lateness
-        return command.split(" ", 1)[0] in self._unanswered
+        # past its window too (session 56): L8121.md bounds no reply's lateness -- for a reply that
+        # reports something (a state, a value) a late one would make stale. Not for the command's
+        # own text echoed (XOF -> XOF): a late echo says what its own would; held, a switch-off after
+        # a silent controller waited a whole reply time-out for nothing before its STS (review s56rvtx)
+        return text != command and command.split(" ", 1)[0] in self._unanswered
 
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial

@@ -374,3 +374,33 @@ def test_a_state_from_before_the_tube_went_on_is_never_read_however_late_it_come
             assert read[-2:] == [SourceState.XRAY_ON] * 2, read
         finally:
             src.close()
+
+
+# -- review s56rvtx ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_switch_off_after_a_silent_one_is_not_held_back_a_reply_time_out(dialect):
+    """The controller falls silent with the tube on (a dead receive line): ``off()`` cannot
+    confirm (its ``XOF`` and ``STS`` unanswered). It answers again, and ``off()`` is called again.
+    The ``XOF`` word was still counted unanswered, past its window, so the new ``XOF``'s echo was
+    held back a whole reply time-out for a second line (confirmed 0.12 -> 0.42 s at T = 0.25 s, 2 s
+    more at the dialects' 2 s) -- though an echo reports no state that a late one could make
+    stale, and the ``STS`` asked after it is what confirms. The confirmation takes two short
+    exchanges, well within one reply time-out."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, off_attempts=1, **FAST)
+        try:
+            model.left_on()
+            model.silence(True)
+            with pytest.raises(DeviceError, match="could not confirm"):
+                src.off()
+            model.silence(False)
+            n, t0 = len(model.log), time.monotonic()
+            assert src.off().confirms_off and not model.xray_on
+            took = time.monotonic() - t0
+            assert [e.command for e in model.log[n:]] == ["XOF", "STS"]
+            assert took < TIMEOUT_S, f"off() took {took:.3f} s after a silent one"
+        finally:
+            src.close()
