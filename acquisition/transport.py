@@ -1685,7 +1685,15 @@ class SerialTransport:
                 # first, the switch-off after the stop waited a whole reply time-out (and a
                 # quarter) for a reply that had come. A line that may be a late one leaves first,
                 # as before: whether it was cannot be decided after a stop.
-                if self._owed or self._unanswered or undecided is not None or not line.strip():
+                # Past its window, only a reply to the word still unanswered may be a late one
+                # (_undecided): a stop in the check of another's, its line gone, cost the
+                # switch-off a whole reply time-out again (review s56rvtx).
+                if (
+                    self._owed
+                    or command.split(" ", 1)[0] in self._unanswered
+                    or undecided is not None
+                    or not line.strip()
+                ):
                     buf = self._rx = rest
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()

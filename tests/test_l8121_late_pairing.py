@@ -404,3 +404,39 @@ def test_a_switch_off_after_a_silent_one_is_not_held_back_a_reply_time_out(diale
             assert took < TIMEOUT_S, f"off() took {took:.3f} s after a silent one"
         finally:
             src.close()
+
+
+def test_a_stop_in_the_reply_check_after_a_reply_past_its_window_costs_the_switch_off_no_time_out():
+    """One ``STS`` is never answered and its window passes (nothing owed; the word still counted
+    unanswered). The next query's reply is read, and a stop lands in the driver's reply check
+    (``reply_fits``, the callback in which a stop can land: injected there, as
+    tests/test_l8121_stop_anywhere.py does). The line had already left the receive buffer, so the
+    ``XOF`` after the stop waited a whole reply time-out for the interrupted query's reply, read
+    and gone (the s55 defect, back in this state); kept in the buffer until decided, it is
+    discarded at once."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        link = _b_link(server.url)
+        try:
+            model.silence(True)
+            with pytest.raises(NoReply):
+                link.query("STS")
+            model.silence(False)
+            time.sleep(TIMEOUT_S + 0.05)  # past the STS's window (a time-out from its own): nothing owed
+            grammar, armed = link.reply_fits, [True]
+
+            def stop_in_the_check(command, reply):
+                if armed and command == "SIN":
+                    armed.clear()
+                    raise KeyboardInterrupt
+                return grammar(command, reply)
+
+            link.reply_fits = stop_in_the_check
+            with pytest.raises(KeyboardInterrupt):
+                link.query("SIN")
+            t0 = time.monotonic()
+            assert link.query("XOF") == "XOF"
+            took = time.monotonic() - t0
+            assert took < TIMEOUT_S / 4, f"XOF answered {took:.3f} s after the stop"
+        finally:
+            link.close()
