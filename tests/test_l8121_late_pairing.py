@@ -486,3 +486,27 @@ def test_a_slow_unit_is_never_sent_a_query_behind_an_unanswered_barrier(dialect)
         finally:
             model.slow(0)
             src.close()
+
+
+def test_a_barrier_is_a_query_whose_reply_tells_it_apart_in_any_state():
+    """B's ``STS`` answers ``ERROR`` as a state (pre-heating, L8121.md's table), a reply that fits
+    every command: as the barrier before another word's query (the first of B's readings), it
+    told nothing apart while the unit pre-heated -- a ``SIN`` asked again after a lost one waited
+    for it to no purpose. A barrier is one whose reply never reads as a refusal; the ``SIN`` is
+    then read within a reply time-out, as in any other state."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.sts_error(True)  # pre-heating, as B reports it
+            model.silence(True)
+            with pytest.raises(DeviceError, match="no reply to SIN"):
+                src.interlock_closed()
+            model.silence(False)
+            n, t0 = len(model.log), time.monotonic()
+            assert src.interlock_closed() is True
+            took = time.monotonic() - t0
+            assert model.log[n].command != "STS", [(e.command, e.reply) for e in model.log[n:]]
+            assert took < TIMEOUT_S, f"interlock_closed() took {took:.3f} s after a lost SIN"
+        finally:
+            src.close()
