@@ -1057,7 +1057,7 @@ def main(argv: list[str] | None = None) -> int:
     # the acquiring process's exchanges come through here: a late reply after a time-out is told
     # from the next command's by the dialect's reply grammar, as on the driver's own link
     link.reply_fits = DIALECTS[config.dialect].reply_fits
-    link.late_barriers = tuple(query.command for query in DIALECTS[config.dialect].readings.values())
+    link.late_barriers = DIALECTS[config.dialect].late_barriers
     # and a reconnect asks the controller who it is before its replies are passed on or its STS
     # confirms a switch-off (the model: configured, then what the connect's TYP read through here)
     link.on_reconnect = Reidentify(DIALECTS[config.dialect], config.model, args.url)

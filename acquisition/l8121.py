@@ -1184,6 +1184,16 @@ class Dialect:
     def __repr__(self) -> str:
         return f"Dialect({self.name!r})"
 
+    @property
+    def late_barriers(self) -> tuple[str, ...]:
+        """The queries a transport may send as a barrier
+        (:attr:`acquisition.transport.SerialTransport.late_barriers`), those whose reply may read
+        ``ERROR`` as a value last (B's ``STS``, pre-heating): an ``ERROR`` fits every command, and
+        tells nothing apart -- first of B's readings, ``STS`` was the barrier of every other B
+        query, waited for to no purpose while the unit pre-heated (review s56rvtx)."""
+        queries = sorted(self.readings.values(), key=lambda query: query.error_is_value)
+        return tuple(query.command for query in queries)
+
     def reply_fits(self, line: str, reply: str) -> bool:
         """Whether ``reply`` can be this dialect's answer to the command ``line``: a query's
         reply parses (``STS`` -> ``STS 2`` in A, ``STANDBY`` in B), a command's echoes it, and a
@@ -2028,7 +2038,7 @@ class L8121:
         if hasattr(transport, "reply_fits"):
             transport.reply_fits = self.dialect.reply_fits
         if hasattr(transport, "late_barriers"):  # the queries it may send to tell a late reply apart
-            transport.late_barriers = tuple(query.command for query in self.dialect.readings.values())
+            transport.late_barriers = self.dialect.late_barriers
         # a check already there is kept: the guardian's knows the model its client's connect read
         if hasattr(transport, "on_reconnect") and transport.on_reconnect is None:
             # the model the probe found (connect's TYP, _check_identity, updates it), else the configured one

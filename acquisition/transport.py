@@ -69,7 +69,8 @@ def exchange_longest_s(timeout_s: float, min_interval_s: float) -> float:
     """One :meth:`SerialTransport.query` at its longest on a link that stays up (a reconnect
     repeats it, after the port's reopening and the identity check): the wait for a late reply after
     a time-out (:func:`late_reply_wait_s`, its last read a slice past it) or, in its place, a
-    barrier query (:meth:`SerialTransport._cross`: its spacing, then a reply read as long), the
+    barrier query (:meth:`SerialTransport._cross`: its spacing, then a reply read as long; one
+    answered later, or not within its own reply time-out, ends the exchange unsent), the
     command spacing at its longest (three spacings: bytes restart it for two, on a line that never
     falls quiet -- :meth:`SerialTransport._wait_spacing`), the reply time-out and two read slices
     past it (the grace for a stalled process, the last read's overrun)."""
@@ -84,7 +85,8 @@ def close_wait_s(timeout_s: float, write_timeout_s: float, min_interval_s: float
     to its time-out (``_drain_pending``) and a read slice; the late reply's wait
     (:func:`late_reply_wait_s`) and a slice, or a barrier query in its place (``_cross``: its
     spacing, its write and drain, each up to ``write_timeout_s``, or its reply read as long as
-    that wait, from its write); the spacing, three spacings at most (a byte in its
+    that wait, from its write -- read longer, up to a reply time-out and a slice, it ends the
+    exchange, the command not sent); the spacing, three spacings at most (a byte in its
     second restarts it, ``_wait_spacing``) and a poll; from the command's start, the reply
     time-out or its three write waits (an earlier command's bytes, its write, its drain, each up
     to ``write_timeout_s``), whichever is longer, and two read slices past it (the stall grace,
@@ -502,6 +504,11 @@ class _StillQueued(serial.SerialTimeoutException):
     def __init__(self, earlier: list[str]):
         super().__init__(" ".join(earlier))
         self.earlier = list(earlier)
+
+
+class _SlowBarrier(DeviceError):
+    """A barrier query (:meth:`SerialTransport._cross`) answered, but later than a late reply is
+    waited for: the query it preceded was not sent (not a signal, nothing on its way)."""
 
 
 class _Undecided(DeviceError):
@@ -1238,7 +1245,7 @@ class SerialTransport:
         if barrier is None:
             self._await_late_reply()
         else:  # its exchange is the wait for a late reply, and more: an answer to "is it over?"
-            self._cross(ser, barrier)
+            self._cross(ser, barrier, command)
         self._wait_spacing(ser)
         self._flush_late(ser)  # a late reply to an earlier, timed-out command
         t0 = time.monotonic()
@@ -1502,24 +1509,36 @@ class SerialTransport:
         avoid = {word, *self._unanswered, *(c.split(" ", 1)[0] for c, _ in self._owed)}
         return next((b for b in self.late_barriers if b not in avoid), None)
 
-    def _cross(self, ser, barrier: str) -> None:
-        """Send ``barrier`` before a query whose word is still owed a reply, and read its reply
-        (up to :func:`late_reply_wait_s`): the controller answers in order, so once a line that
+    def _cross(self, ser, barrier: str, command: str) -> None:
+        """Send ``barrier`` before ``command``, a query whose word is still owed a reply, and read
+        its reply: the controller answers in order, so once a line that
         can only be the barrier's has come, every reply owed before it has come or never will,
         and the query that follows reads its own -- however late the owed one was (L8121.md
         bounds no reply's lateness). Lines before it that fit an owed command and not the barrier
         are the late replies (discarded); a line that fits both (``ERROR``) or neither (noise)
         decides nothing. Without it the query's reply, fitting both, was held a reply time-out
         for a second line when the owed reply never came (``status()`` 0.10 -> 0.42 s at a
-        0.25 s time-out, 2.6 s at the dialects' 2 s). A barrier not answered in time is owed in
-        turn, and the query goes out to the hold (:meth:`_read_line`), as without one. It stands
-        in for :meth:`_await_late_reply` (a late reply that comes is read and discarded here)."""
+        0.25 s time-out, 2.6 s at the dialects' 2 s). It stands in for :meth:`_await_late_reply`
+        (a late reply that comes is read and discarded here).
+
+        The barrier is a query, owed its reply time-out like any: nothing is written behind it
+        before its reply or that time-out (L8121.md: "one command, one reply ... never
+        pipeline"). Given a quarter of one, the query was written while a unit answering in
+        nine tenths of its time-out was still answering the barrier, and its reply, queued
+        behind, came past its own time-out (three ``status()`` in a row failed, review s56rvtx).
+        No reply within it: NoReply, ``command`` not sent (in order, its reply would queue behind
+        the barrier's), the barrier owed. A reply later than :func:`late_reply_wait_s` (a slow
+        unit): ``command`` is not sent either (DeviceError, the controller caught up: the next
+        query reads its own reply at once) -- sent, the exchange would be two slow replies long,
+        past :func:`exchange_longest_s`, on which the guardian's kill bound and the close waits
+        rest."""
         self._wait_spacing(ser)
         self._flush_late(ser)
         self._timed_out = False  # this exchange is the wait for a late reply
         t0 = time.monotonic()
-        deadline = t0 + late_reply_wait_s(self.timeout_s)
+        deadline = t0 + self.timeout_s
         buf = self._rx = bytearray()
+        owed, stalled = list(self._unanswered), False
         self.log.debug("%s > %s (barrier: a reply to %s is owed)", shown_name(self.url), barrier, self._unanswered)
         self.commands_written += 1
         self._undrained.append(barrier)
@@ -1534,32 +1553,36 @@ class SerialTransport:
                 lines = re.split(rb"[\r\n]", bytes(buf))
                 buf = self._rx = bytearray(lines[-1])
                 for raw in (line for line in lines[:-1] if line.strip()):
-                    text = _text(raw).strip()
-                    fits = self.reply_fits(barrier, text)
-                    earlier = any(self.reply_fits(c, text) for c in self._unanswered) or any(
-                        self.reply_fits(c, text) for c, _ in self._owed
-                    )
-                    if fits and not earlier:
-                        self.log.debug(
-                            "%s < %s (barrier: nothing owed before it is coming)", shown_name(self.url), text
-                        )
-                        self._answered()
-                        self._rx = bytearray()  # (what follows it is no reply: the flush takes it)
+                    if not self._is_barriers(barrier, _text(raw).strip()):
+                        continue
+                    self._answered()
+                    self._rx = bytearray()  # (what follows it is no reply: the flush takes it)
+                    took = time.monotonic() - t0
+                    if took <= late_reply_wait_s(self.timeout_s) + _READ_SLICE_S:
                         return
-                    late = self._drop_owed_to(text) if earlier and not fits else None
-                    self.log.debug(
-                        "%s < %s (before the barrier's reply: %s)",
-                        shown_name(self.url),
-                        text,
-                        f"late reply to {late}: discarded" if late else "decides nothing",
+                    raise _SlowBarrier(
+                        f"{shown_name(self.url)}: {command} not sent: the controller answered {barrier}, asked "
+                        f"before it (a reply to {', '.join(owed)} was owed), only after {took:.2f} s; it has "
+                        f"caught up, ask again"
                     )
-                if time.monotonic() >= deadline:
+                if time.monotonic() >= deadline and not stalled:
+                    # one slice more, as _read_line waits for a reply due in time that a stall of
+                    # this process kept from being read
+                    stalled, deadline = True, time.monotonic() + _READ_SLICE_S
+                elif time.monotonic() >= deadline:
                     self.log.debug(
-                        "%s: no reply to the barrier %s within %g s", shown_name(self.url), barrier, deadline - t0
+                        "%s: no reply to the barrier %s within %g s", shown_name(self.url), barrier, self.timeout_s
                     )
                     self._owe(barrier, time.monotonic() + self.timeout_s)
-                    return
+                    self._timed_out = True  # the next command waits for its late reply, as after any time-out
+                    raise NoReply(
+                        f"{shown_name(self.url)}: no reply to {command}: not sent, the controller did not answer "
+                        f"{barrier}, asked before it (a reply to {', '.join(owed)} was owed), within "
+                        f"{self.timeout_s:g} s"
+                    )
                 buf += self._read_some(ser, f"it read the reply to {barrier}")
+        except (NoReply, _SlowBarrier):
+            raise  # (owed already, or answered)
         except BaseException:
             # written: its reply may still come (a stop, a lost link); told from the next
             # command's by the grammar, as any owed reply -- a switch-off does not wait for it
@@ -1567,6 +1590,26 @@ class SerialTransport:
             raise
         finally:
             self._last_exchange = time.monotonic()
+
+    def _is_barriers(self, barrier: str, text: str) -> bool:
+        """Whether ``text``, read after ``barrier`` was sent, is its reply: it fits the barrier
+        and no command owed a reply (:meth:`_cross`). One that fits an owed command and not the
+        barrier is a late reply (discarded); one that fits both or neither decides nothing."""
+        fits = self.reply_fits(barrier, text)
+        earlier = any(self.reply_fits(c, text) for c in self._unanswered) or any(
+            self.reply_fits(c, text) for c, _ in self._owed
+        )
+        if fits and not earlier:
+            self.log.debug("%s < %s (barrier: nothing owed before it is coming)", shown_name(self.url), text)
+            return True
+        late = self._drop_owed_to(text) if earlier and not fits else None
+        self.log.debug(
+            "%s < %s (before the barrier's reply: %s)",
+            shown_name(self.url),
+            text,
+            f"late reply to {late}: discarded" if late else "decides nothing",
+        )
+        return False
 
     def _drain_pending(self) -> None:
         """Complete an exchange a signal cut short (``L8121.md``: "one command, one reply ... never
@@ -1660,8 +1703,11 @@ class SerialTransport:
             return False
         if self._owed and self.reply_fits(self._owed[0][0], text):
             return True
-        # past its window too (session 56): L8121.md bounds no reply's lateness
-        return command.split(" ", 1)[0] in self._unanswered
+        # past its window too (session 56): L8121.md bounds no reply's lateness -- for a reply that
+        # reports something (a state, a value) a late one would make stale. Not for the command's
+        # own text echoed (XOF -> XOF): a late echo says what its own would; held, a switch-off after
+        # a silent controller waited a whole reply time-out for nothing before its STS (review s56rvtx)
+        return text != command and command.split(" ", 1)[0] in self._unanswered
 
     def _read_line(self, command: str, deadline: float) -> str:
         ser = self._serial
@@ -1682,7 +1728,15 @@ class SerialTransport:
                 # first, the switch-off after the stop waited a whole reply time-out (and a
                 # quarter) for a reply that had come. A line that may be a late one leaves first,
                 # as before: whether it was cannot be decided after a stop.
-                if self._owed or self._unanswered or undecided is not None or not line.strip():
+                # Past its window, only a reply to the word still unanswered may be a late one
+                # (_undecided): a stop in the check of another's, its line gone, cost the
+                # switch-off a whole reply time-out again (review s56rvtx).
+                if (
+                    self._owed
+                    or command.split(" ", 1)[0] in self._unanswered
+                    or undecided is not None
+                    or not line.strip()
+                ):
                     buf = self._rx = rest
                 if line.strip():  # skip the empty line between the CR and LF of a CR LF
                     text = _text(line).strip()

@@ -52,6 +52,18 @@ def _sts_owed_then_left_on(model, src, delay: float | None = None) -> None:
     model.left_on()
 
 
+def _status_once_caught_up(src):
+    """``status()``, asked again once if its ``STS`` was not sent: the barrier query before it was
+    answered later than a late reply is waited for (the unit still busy with the late reply), and
+    the ``STS`` is not written behind it (L8121.md: never pipeline; review s56rvtx). Its reply
+    showed the controller caught up: the next ``status()`` reads its own reply."""
+    try:
+        return src.status()
+    except DeviceError as exc:
+        assert "STS not sent" in str(exc), exc
+        return src.status()
+
+
 def test_a_late_reconnect_check_reply_is_not_read_as_the_next_commands():
     """The reviewer's case: a read error during ``SIN`` reopens the port; the reconnect check's
     ``SRL`` is answered late (held); the next query reopens and asks ``SRL`` again. The first
@@ -121,7 +133,7 @@ def test_a_reply_slower_than_the_time_out_is_not_read_as_the_resent_querys():
         src = L8121(server.url, dialect="B", **FAST)
         try:
             _sts_owed_then_left_on(model, src, delay=2 * TIMEOUT_S)
-            assert src.status() == SourceState.XRAY_ON
+            assert _status_once_caught_up(src) == SourceState.XRAY_ON
         finally:
             model.slow(0)
             src.close()
@@ -303,7 +315,7 @@ def test_a_reply_later_than_its_window_is_not_read_as_the_resent_querys():
                 src.status()
             model.left_on()
             time.sleep(max(0.0, t0 + 3 * TIMEOUT_S - time.monotonic()))
-            assert src.status() == SourceState.XRAY_ON
+            assert _status_once_caught_up(src) == SourceState.XRAY_ON
             assert src.status() == SourceState.XRAY_ON
         finally:
             src.close()
@@ -372,5 +384,129 @@ def test_a_state_from_before_the_tube_went_on_is_never_read_however_late_it_come
                     read.append(str(exc).split(": ", 1)[-1][:40])
             assert SourceState.STANDBY not in read, read
             assert read[-2:] == [SourceState.XRAY_ON] * 2, read
+        finally:
+            src.close()
+
+
+# -- review s56rvtx ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_switch_off_after_a_silent_one_is_not_held_back_a_reply_time_out(dialect):
+    """The controller falls silent with the tube on (a dead receive line): ``off()`` cannot
+    confirm (its ``XOF`` and ``STS`` unanswered). It answers again, and ``off()`` is called again.
+    The ``XOF`` word was still counted unanswered, past its window, so the new ``XOF``'s echo was
+    held back a whole reply time-out for a second line (confirmed 0.12 -> 0.42 s at T = 0.25 s, 2 s
+    more at the dialects' 2 s) -- though an echo reports no state that a late one could make
+    stale, and the ``STS`` asked after it is what confirms. The confirmation takes two short
+    exchanges, well within one reply time-out."""
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, off_attempts=1, **FAST)
+        try:
+            model.left_on()
+            model.silence(True)
+            with pytest.raises(DeviceError, match="could not confirm"):
+                src.off()
+            model.silence(False)
+            n, t0 = len(model.log), time.monotonic()
+            assert src.off().confirms_off and not model.xray_on
+            took = time.monotonic() - t0
+            assert [e.command for e in model.log[n:]] == ["XOF", "STS"]
+            assert took < TIMEOUT_S, f"off() took {took:.3f} s after a silent one"
+        finally:
+            src.close()
+
+
+def test_a_stop_in_the_reply_check_after_a_reply_past_its_window_costs_the_switch_off_no_time_out():
+    """One ``STS`` is never answered and its window passes (nothing owed; the word still counted
+    unanswered). The next query's reply is read, and a stop lands in the driver's reply check
+    (``reply_fits``, the callback in which a stop can land: injected there, as
+    tests/test_l8121_stop_anywhere.py does). The line had already left the receive buffer, so the
+    ``XOF`` after the stop waited a whole reply time-out for the interrupted query's reply, read
+    and gone (the s55 defect, back in this state); kept in the buffer until decided, it is
+    discarded at once."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        link = _b_link(server.url)
+        try:
+            model.silence(True)
+            with pytest.raises(NoReply):
+                link.query("STS")
+            model.silence(False)
+            time.sleep(TIMEOUT_S + 0.05)  # past the STS's window (a time-out from its own): nothing owed
+            grammar, armed = link.reply_fits, [True]
+
+            def stop_in_the_check(command, reply):
+                if armed and command == "SIN":
+                    armed.clear()
+                    raise KeyboardInterrupt
+                return grammar(command, reply)
+
+            link.reply_fits = stop_in_the_check
+            with pytest.raises(KeyboardInterrupt):
+                link.query("SIN")
+            t0 = time.monotonic()
+            assert link.query("XOF") == "XOF"
+            took = time.monotonic() - t0
+            assert took < TIMEOUT_S / 4, f"XOF answered {took:.3f} s after the stop"
+        finally:
+            link.close()
+
+
+@pytest.mark.parametrize("dialect", ["A", "B"])
+def test_a_slow_unit_is_never_sent_a_query_behind_an_unanswered_barrier(dialect):
+    """A unit that answers every command within its reply time-out, but in nine tenths of it
+    (B's driver allows 2 s; a unit answering in 1.5 s must not read as silent), one at a time (the
+    emulator answers in order). One ``STS`` is lost; ``status()`` is asked again. The barrier query
+    before it was given a quarter of a time-out (the wait for a late reply), and the ``STS`` was
+    then written while the barrier was still being answered -- pipelined, against L8121.md ("one
+    command, one reply ... never pipeline"): its reply, queued behind the barrier's, came past its
+    own time-out, and the next three ``status()`` failed "no reply" (0.8 s each at T = 0.5 s).
+    The barrier is a query, owed its reply time-out: no command is written before its reply.
+    That ``status()`` may fail cleanly (its ``STS`` not sent: two slow replies would overrun the
+    exchange's bound), and the next reads the state."""
+    timeout_s, latency_s = 0.5, 0.45  # (the read slices' 0.1 s of slack would hide the pipelining at 0.25 s)
+    model = L8121Model(dialect=dialect, warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect=dialect, poll_s=0.05, min_interval_s=0.02, timeout_s=timeout_s)
+        try:
+            model.silence(True)
+            with pytest.raises(DeviceError, match="no reply to STS"):
+                src.status()
+            model.silence(False)
+            model.slow(latency_s)
+            n = len(model.log)
+            with pytest.raises(DeviceError, match="STS not sent"):
+                src._read("state")
+            assert src._read("state") == SourceState.STANDBY
+            log = model.log[n:]
+            # each line received once the reply before it was sent (model time: when received)
+            assert all(b.t >= a.t + latency_s for a, b in zip(log, log[1:])), [(e.command, e.t) for e in log]
+        finally:
+            model.slow(0)
+            src.close()
+
+
+def test_a_barrier_is_a_query_whose_reply_tells_it_apart_in_any_state():
+    """B's ``STS`` answers ``ERROR`` as a state (pre-heating, L8121.md's table), a reply that fits
+    every command: as the barrier before another word's query (the first of B's readings), it
+    told nothing apart while the unit pre-heated -- a ``SIN`` asked again after a lost one waited
+    for it to no purpose. A barrier is one whose reply never reads as a refusal; the ``SIN`` is
+    then read within a reply time-out, as in any other state."""
+    model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
+    with PtyServer(model) as server:
+        src = L8121(server.url, dialect="B", **FAST)
+        try:
+            model.sts_error(True)  # pre-heating, as B reports it
+            model.silence(True)
+            with pytest.raises(DeviceError, match="no reply to SIN"):
+                src.interlock_closed()
+            model.silence(False)
+            n, t0 = len(model.log), time.monotonic()
+            assert src.interlock_closed() is True
+            took = time.monotonic() - t0
+            assert model.log[n].command != "STS", [(e.command, e.reply) for e in model.log[n:]]
+            assert took < TIMEOUT_S, f"interlock_closed() took {took:.3f} s after a lost SIN"
         finally:
             src.close()
