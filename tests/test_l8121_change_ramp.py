@@ -159,14 +159,20 @@ def _changes_without_a_fault(model: L8121Model, dialect: str, before, after) -> 
                 src.set_values(*after)
             except DeviceError as exc:
                 faults.append(exc)
-        try:
-            assert faults == [] and model.xray_on, faults
+        _left_on_then_off(src, model, faults, after)
+
+
+def _left_on_then_off(src, model: L8121Model, faults: list, after=None) -> None:
+    """No fault from the change nor a monitor, the tube never switched off and (given ``after``)
+    stable there; then ``off()``, the tube off."""
+    try:
+        assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        if after is not None:
             kv, ua = src.measured()
             assert abs(kv - after[0]) <= src.config.tolerance_kv(after[0])
             assert abs(ua - after[1]) <= src.config.tolerance_ua(after[1])
-            assert "XOF" not in model.commands
-        finally:
-            src.off()
+    finally:
+        src.off()
     assert not model.xray_on
 
 
@@ -223,12 +229,8 @@ def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges
         src._beam_reading = late_reading
         with beam_monitor(src, src.config.poll_s / 2, stop=done) as faults:
             src.set_values(60, 100)
-        try:
-            assert held, "the monitor read no value of the ramp"
-            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
-        finally:
-            src.off()
-    assert not model.xray_on
+        assert held, "the monitor read no value of the ramp"
+        _left_on_then_off(src, model, faults)
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -295,9 +297,5 @@ def test_a_monitors_reading_judged_after_a_later_one_of_the_wait_is_not_a_fall(d
                 faults.append(exc)
             finally:
                 passed.set()  # a monitor's reading still held goes on before its thread is joined
-        try:
-            assert held and passed.is_set(), (held, seen)
-            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
-        finally:
-            src.off()
-    assert not model.xray_on
+        assert held and passed.is_set(), (held, seen)
+        _left_on_then_off(src, model, faults)
