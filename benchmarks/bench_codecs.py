@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 import warnings
@@ -20,10 +21,12 @@ from pathlib import Path
 import imagecodecs
 import numpy as np
 from pydicom import uid
-from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.encaps import encapsulate
 
 from radiokit.io import read
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from dicomdata import grey_dataset
 
 CODECS = {
     "uncompressed": (uid.ExplicitVRLittleEndian, None),
@@ -47,15 +50,7 @@ def _frame(size: int) -> np.ndarray:
 
 
 def _write(path: Path, frame: np.ndarray, syntax, encode) -> None:
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"
-    meta.MediaStorageSOPInstanceUID = uid.generate_uid()
-    meta.TransferSyntaxUID = syntax
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID
-    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *frame.shape, 1, "MONOCHROME2"
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds = grey_dataset(syntax, frame.shape, 16, 12)
     if encode is None:
         ds.PixelData = frame.astype("<u2").tobytes()
     else:

@@ -24,8 +24,10 @@ from pathlib import Path
 import imagecodecs
 import numpy as np
 from pydicom import uid
-from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.encaps import encapsulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from dicomdata import grey_dataset
 
 # syntax: (bits stored, encoder of a uint16 frame, or None for pydicom's own encoding)
 SYNTAXES = {
@@ -58,18 +60,9 @@ def write(path: Path, name: str, size: int, variant: str = "plain", frames: int 
     frame = _frame(size, bits)
     stack = [np.roll(frame, k, axis=1) for k in range(frames)]  # (each frame its own stream)
     syntax = getattr(uid, name)
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1.1"
-    meta.MediaStorageSOPInstanceUID = uid.generate_uid()
-    meta.TransferSyntaxUID = syntax
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID
-    ds.Rows, ds.Columns, ds.SamplesPerPixel, ds.PhotometricInterpretation = *frame.shape, 1, "MONOCHROME2"
+    ds = grey_dataset(syntax, frame.shape, 16 if bits > 8 else 8, bits, signed=variant == "signed")
     if frames > 1:
         ds.NumberOfFrames = frames
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16 if bits > 8 else 8, bits, bits - 1
-    ds.PixelRepresentation = 1 if variant == "signed" else 0
     if variant == "rescaled":
         ds.RescaleSlope, ds.RescaleIntercept = "0.5", "-1024"
     frame = np.stack(stack) if frames > 1 else frame

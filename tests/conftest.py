@@ -445,6 +445,30 @@ def in_thread(call):
     return thread, out
 
 
+@contextlib.contextmanager
+def beam_monitor(src, every_s, stop=None):
+    """A series' beam monitor: ``src.check()`` in another thread every ``every_s`` (the first after
+    ``every_s``) until the block ends or ``stop`` is set; yields the list its fault goes to (it stops
+    at the first). The block's end sets ``stop`` and joins the thread, also when the block raised."""
+    faults, stop = [], stop or threading.Event()
+
+    def poll():
+        while not stop.wait(every_s):
+            try:
+                src.check()
+            except Exception as exc:  # recorded: the test's assertion names it
+                faults.append(exc)
+                return
+
+    poller = threading.Thread(target=poll)
+    poller.start()
+    try:
+        yield faults
+    finally:
+        stop.set()
+        poller.join()
+
+
 def square_pair(n=160):
     """``(reference, moving, mask)``: flat images, transmission 1.0 (reference) and 0.9 (moving),
     with a 40 px square at 1.3 and 1.25 in their middle (``mask``): the CNR tests' pair, whose

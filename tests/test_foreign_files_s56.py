@@ -13,18 +13,22 @@ def _counts(shape=(40, 50), bits=12, seed=56):
     return np.random.default_rng(seed).integers(0, 1 << bits, size=shape, dtype=np.uint16)
 
 
-def _dx(path, words, *, bits_stored=12, high_bit=None, photometric="MONOCHROME2", **attrs):
-    """A DX DICOM of 16-bit ``words`` as pydicom writes one."""
+def _dataset(sop_class: str, modality: str):
+    """A dataset of ``sop_class`` to be written in explicit VR little endian; ``save_as(path,
+    enforce_file_format=True)`` fills the rest of its file meta from its own UIDs."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.1.1"  # DX for presentation
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "DX"
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = sop_class, generate_uid(), modality
+    return ds
+
+
+def _dx(path, words, *, bits_stored=12, high_bit=None, photometric="MONOCHROME2", **attrs):
+    """A DX DICOM of 16-bit ``words`` as pydicom writes one."""
+    ds = _dataset("1.2.840.10008.5.1.4.1.1.1.1", "DX")  # DX for presentation
     ds.Rows, ds.Columns = words.shape
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, photometric
     ds.BitsAllocated, ds.BitsStored, ds.PixelRepresentation = 16, bits_stored, 0
@@ -216,16 +220,7 @@ def test_info_gives_a_rescaled_dicom_s_padding_value_as_its_pixels_read(tmp_path
 def test_an_mr_spectroscopy_file_is_not_called_truncated(tmp_path):
     """An MR Spectroscopy object has Rows and Columns (its voxel grid) and SpectroscopyData, never
     pixels: a whole, valid file was said to be "truncated before its pixels, or they were removed"."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
-
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.4.2"  # MR Spectroscopy Storage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "MR"
+    ds = _dataset("1.2.840.10008.5.1.4.1.1.4.2", "MR")  # MR Spectroscopy Storage
     ds.Rows, ds.Columns, ds.DataPointRows, ds.DataPointColumns = 1, 1, 1, 256
     ds.SpectroscopyData = np.zeros(512, "<f4").tobytes()
     ds.save_as(tmp_path / "mrs.dcm", enforce_file_format=True)

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 import serial
+from conftest import beam_monitor
 
 from acquisition.emulators.l8121 import DEFAULT_BAUD, L8121Model, PtyServer, SocketServer
 from acquisition.errors import DeviceError, NoReply, SourceFault, WriteTimedOut
@@ -1318,25 +1319,11 @@ def test_a_monitor_polling_while_set_values_ramps_sees_no_fault(source, dialect,
     src, model = source
     src.on(*before)
     model.ramp_s = 0.6  # a few polls inside the ramp
-    faults, stop = [], threading.Event()
-
-    def monitor():
-        while not stop.wait(src.config.poll_s):  # as a series' beam monitor polls
-            try:
-                src.check()
-            except Exception as exc:  # recorded: the assertion names it
-                faults.append(exc)
-                return
-
-    poller = threading.Thread(target=monitor)
-    poller.start()
-    try:
-        src.set_values(*after)
-    except SourceFault as exc:
-        faults.append(exc)
-    finally:
-        stop.set()
-        poller.join()
+    with beam_monitor(src, src.config.poll_s) as faults:  # as a series' beam monitor polls
+        try:
+            src.set_values(*after)
+        except SourceFault as exc:
+            faults.append(exc)
     assert faults == [] and model.xray_on, faults
     ua = src.check()["current_ua"]
     assert abs(ua - after[1]) <= src.config.tolerance_ua(after[1])

@@ -18,6 +18,7 @@ import threading
 import time
 
 import pytest
+from conftest import beam_monitor
 
 from acquisition.emulators.l8121 import L8121Model, PtyServer
 from acquisition.errors import DeviceError, SourceFault
@@ -151,36 +152,27 @@ def test_the_count_under_the_drop_bound_starts_where_a_fall_ends_at_any_current(
 def _changes_without_a_fault(model: L8121Model, dialect: str, before, after) -> None:
     """on(*before), then set_values(*after) while a beam monitor polls check(): no fault from
     either, the beam stable at ``after``, then switched off."""
-    faults, stop = [], threading.Event()
-
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
         src.on(*before)
+        with beam_monitor(src, src.config.poll_s / 2) as faults:  # as a series' monitor, more often
+            try:
+                src.set_values(*after)
+            except DeviceError as exc:
+                faults.append(exc)
+        _left_on_then_off(src, model, faults, after)
 
-        def monitor():
-            while not stop.wait(src.config.poll_s / 2):  # as a series' beam monitor, more often
-                try:
-                    src.check()
-                except Exception as exc:  # recorded: the assertion names it
-                    faults.append(exc)
-                    return
 
-        poller = threading.Thread(target=monitor)
-        poller.start()
-        try:
-            src.set_values(*after)
-        except DeviceError as exc:
-            faults.append(exc)
-        finally:
-            stop.set()
-            poller.join()
-        try:
-            assert faults == [] and model.xray_on, faults
+def _left_on_then_off(src, model: L8121Model, faults: list, after=None) -> None:
+    """No fault from the change nor a monitor, the tube never switched off and (given ``after``)
+    stable there; then ``off()``, the tube off."""
+    try:
+        assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
+        if after is not None:
             kv, ua = src.measured()
             assert abs(kv - after[0]) <= src.config.tolerance_kv(after[0])
             assert abs(ua - after[1]) <= src.config.tolerance_ua(after[1])
-            assert "XOF" not in model.commands
-        finally:
-            src.off()
+    finally:
+        src.off()
     assert not model.xray_on
 
 
@@ -192,30 +184,17 @@ def test_a_monitor_polling_while_a_change_drops_the_beam_leaves_the_tube_off_and
     comes out of set_values() as that fault, before the stable wait's time-out."""
     before, after = CHANGES["down"]
     model = _unit(dialect, start)
-    faults, stop = [], threading.Event()
 
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
         src.on(*before)
-
-        def monitor():
-            while not stop.wait(src.config.poll_s / 2):
-                try:
-                    src.check()
-                except Exception as exc:
-                    faults.append(exc)
-                    return
-
-        poller = threading.Thread(target=monitor)
-        poller.start()
-        model.inject_after("CUR", model.drop_beam)
-        t0 = time.monotonic()
-        try:
-            with pytest.raises(DeviceError) as caught:
-                src.set_values(*after)
-        finally:
-            took = time.monotonic() - t0
-            stop.set()
-            poller.join()
+        with beam_monitor(src, src.config.poll_s / 2) as faults:
+            model.inject_after("CUR", model.drop_beam)
+            t0 = time.monotonic()
+            try:
+                with pytest.raises(DeviceError) as caught:
+                    src.set_values(*after)
+            finally:
+                took = time.monotonic() - t0
         assert not model.xray_on and src.confirmed_off is not None
         assert took < TIMING["stable_timeout_s"] / 2, (took, str(caught.value))
     # set_values() names the cause whichever thread saw it: it said "beam dropped: state STANDBY"
@@ -234,7 +213,7 @@ def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges
     that succeeded (review s56rvacq). The thread's delay is the one thing faked (no test can make a scheduler stall
     a thread between two lines): a wrapper holds the monitor's reading until the change is over."""
     model = _unit(dialect, "zero", ramp_s=0.2)
-    held, done, faults = [], threading.Event(), []
+    held, done = [], threading.Event()
 
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
         src.on(60, 250)
@@ -248,29 +227,10 @@ def test_a_monitors_reading_taken_during_a_change_is_judged_as_the_change_judges
             return state, kv, ua
 
         src._beam_reading = late_reading
-
-        def monitor():
-            while not done.is_set():
-                try:
-                    src.check()
-                except Exception as exc:  # recorded: the assertion names it
-                    faults.append(exc)
-                    return
-                time.sleep(src.config.poll_s / 2)
-
-        poller = threading.Thread(target=monitor)
-        poller.start()
-        try:
+        with beam_monitor(src, src.config.poll_s / 2, stop=done) as faults:
             src.set_values(60, 100)
-        finally:
-            done.set()
-            poller.join()
-        try:
-            assert held, "the monitor read no value of the ramp"
-            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
-        finally:
-            src.off()
-    assert not model.xray_on
+        assert held, "the monitor read no value of the ramp"
+        _left_on_then_off(src, model, faults)
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -282,32 +242,17 @@ def test_a_fault_a_monitor_trips_between_a_changes_commands_is_what_the_change_s
     tube on only, "CUR 250 refused by the controller (ERROR)", the cause said by the monitor
     alone (review s56rvacq). It says the monitor's cause, and sends no setting after its XOF."""
     model = _unit(dialect, "here")
-    faults, stop = [], threading.Event()
 
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
         src.on(60, 250)
-
-        def monitor():
-            while not stop.wait(0.01):
-                try:
-                    src.check()
-                except Exception as exc:
-                    faults.append(exc)
-                    return
-
-        poller = threading.Thread(target=monitor)
-        poller.start()
-        n = len(model.commands)
-        model.inject_after("HIV", getattr(model, fault))
-        # the first command's reply late: the monitor's next poll is queued by then, and goes
-        # before the change's second command (one refused before any poll said only "refused")
-        model.delay_once(0.15, "HIV")
-        try:
+        with beam_monitor(src, 0.01):
+            n = len(model.commands)
+            model.inject_after("HIV", getattr(model, fault))
+            # the first command's reply late: the monitor's next poll is queued by then, and goes
+            # before the change's second command (one refused before any poll said only "refused")
+            model.delay_once(0.15, "HIV")
             with pytest.raises(SourceFault) as caught:
                 src.set_values(70, 250)
-        finally:
-            stop.set()
-            poller.join()
         sent = model.commands[n:]
         assert not model.xray_on and src.confirmed_off is not None, sent
     words = "interlock open" if fault == "open_interlock" else "overload"
@@ -326,8 +271,7 @@ def test_a_monitors_reading_judged_after_a_later_one_of_the_wait_is_not_a_fall(d
     current 39 µA after 72 µA" (review s56rvacq). A reading is judged by when it was read. The thread's delay is the
     one thing faked, as above: a wrapper holds the monitor's reading until the wait is past it."""
     model = _unit(dialect, "zero", ramp_s=0.4)
-    held, seen, faults, done = [], [], [], threading.Event()
-    passed = threading.Event()
+    held, seen, done, passed = [], [], threading.Event(), threading.Event()
 
     with PtyServer(model) as server, L8121(server.url, dialect=dialect, **TIMING) as src:
         src.on(60, 100)
@@ -346,29 +290,12 @@ def test_a_monitors_reading_judged_after_a_later_one_of_the_wait_is_not_a_fall(d
             return state, kv, ua
 
         src._beam_reading = ordered_late
-
-        def monitor():
-            while not done.is_set():
-                try:
-                    src.check()
-                except Exception as exc:  # recorded: the assertion names it
-                    faults.append(exc)
-                    return
-                time.sleep(src.config.poll_s / 2)
-
-        poller = threading.Thread(target=monitor)
-        poller.start()
-        try:
-            src.set_values(60, 250)
-        except DeviceError as exc:
-            faults.append(exc)
-        finally:
-            done.set()
-            passed.set()
-            poller.join()
-        try:
-            assert held and passed.is_set(), (held, seen)
-            assert faults == [] and model.xray_on and "XOF" not in model.commands, faults
-        finally:
-            src.off()
-    assert not model.xray_on
+        with beam_monitor(src, src.config.poll_s / 2, stop=done) as faults:
+            try:
+                src.set_values(60, 250)
+            except DeviceError as exc:
+                faults.append(exc)
+            finally:
+                passed.set()  # a monitor's reading still held goes on before its thread is joined
+        assert held and passed.is_set(), (held, seen)
+        _left_on_then_off(src, model, faults)

@@ -15,6 +15,7 @@ has arrived by then).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -62,6 +63,32 @@ def _status_once_caught_up(src):
     except DeviceError as exc:
         assert "STS not sent" in str(exc), exc
         return src.status()
+
+
+def _unanswered(model, ask, word: str = "STS", *, execute: bool = False) -> None:
+    """``ask()`` while the controller is silent (``execute``: it still acts on what it hears): it
+    must fail, no reply to ``word``; the controller answers again after."""
+    model.silence(True, execute=execute)
+    with pytest.raises(DeviceError, match=f"no reply to {word}"):
+        ask()
+    model.silence(False)
+
+
+def _status_stopped_then_off(src, model, wait_for_the_moment) -> None:
+    """``status()`` stopped by a SIGINT sent from another thread once ``wait_for_the_moment()``
+    returns there; then ``off()``, which must confirm the tube off."""
+
+    def stop():
+        wait_for_the_moment()
+        os.kill(os.getpid(), signal.SIGINT)
+
+    watcher = threading.Thread(target=stop, daemon=True)
+    watcher.start()
+    with pytest.raises(KeyboardInterrupt):
+        src.status()
+        time.sleep(TIMEOUT_S)
+    watcher.join(timeout=2)
+    assert src.off().confirms_off and not model.xray_on
 
 
 def test_a_late_reconnect_check_reply_is_not_read_as_the_next_commands():
@@ -151,10 +178,7 @@ def test_a_stop_while_a_reply_is_held_back_switches_off_promptly(sigint_default)
         src._transport.late_barriers = ()  # the hold, as when the barrier query goes unanswered
         try:
             model.left_on()
-            model.silence(True, execute=True)
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.silence(False)
+            _unanswered(model, src.status, execute=True)
             n, kill = len(model.log), {}
 
             def stop_once_answered():
@@ -191,20 +215,13 @@ def test_a_stop_while_a_late_reply_is_held_back_leaves_the_resent_querys_own_rep
             _sts_owed_then_left_on(model, src)
             n = len(model.log)
 
-            def stop_within_the_hold():
+            def within_the_hold():
                 while not any(e.command == "STS" for e in model.log[n:]):
                     time.sleep(0.002)
                 # the held STANDBY is sent as the STS arrives, its own reply LATENCY_S later
                 time.sleep(LATENCY_S / 3)
-                os.kill(os.getpid(), signal.SIGINT)
 
-            watcher = threading.Thread(target=stop_within_the_hold, daemon=True)
-            watcher.start()
-            with pytest.raises(KeyboardInterrupt):
-                src.status()
-                time.sleep(TIMEOUT_S)
-            watcher.join(timeout=2)
-            assert src.off().confirms_off and not model.xray_on
+            _status_stopped_then_off(src, model, within_the_hold)
             after = [(e.command, e.reply) for e in model.log[n:]]
             assert after[0] == ("STS", "XON") and after[1] == ("XOF", "XOF"), after
             assert all(c == "STS" for c, _ in after[2:]) and after[-1][1] != "XON", after
@@ -224,6 +241,21 @@ def _b_link(url):
     return link
 
 
+@contextlib.contextmanager
+def _b_link_after_a_lost_sts(model, url):
+    """``_b_link``, its first ``STS`` never answered (the controller silent meanwhile); closed
+    after the block."""
+    link = _b_link(url)
+    try:
+        model.silence(True)
+        with pytest.raises(NoReply):
+            link.query("STS")
+        model.silence(False)
+        yield link
+    finally:
+        link.close()
+
+
 @pytest.mark.parametrize("dialect", ["A", "B"])
 def test_the_same_query_after_a_never_answered_one_costs_less_than_a_reply_time_out(dialect):
     """One ``STS`` the controller never answers (lost); the tube is then switched on and
@@ -236,10 +268,7 @@ def test_the_same_query_after_a_never_answered_one_costs_less_than_a_reply_time_
     with PtyServer(model) as server:
         src = L8121(server.url, dialect=dialect, **FAST)
         try:
-            model.silence(True)
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.silence(False)
+            _unanswered(model, src.status)
             model.left_on()
             t0 = time.monotonic()
             state = src.status()
@@ -279,24 +308,16 @@ def test_noise_after_a_held_reply_is_a_clean_failure_never_a_wrong_pairing():
     returned or the query fails -- never the noise as the reply -- and the next queries read their
     own replies."""
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
-    with PtyServer(model) as server:
-        link = _b_link(server.url)
+    with PtyServer(model) as server, _b_link_after_a_lost_sts(model, server.url) as link:
+        noise = threading.Timer(LATENCY_S / 3, server.line_noise, (b"#~%\r",))
+        model.inject_after("STS", noise.start)
         try:
-            model.silence(True)
-            with pytest.raises(NoReply):
-                link.query("STS")
-            model.silence(False)
-            noise = threading.Timer(LATENCY_S / 3, server.line_noise, (b"#~%\r",))
-            model.inject_after("STS", noise.start)
-            try:
-                assert link.query("STS") == "STANDBY"
-            except DeviceError as exc:
-                assert "#~%" in str(exc) and "STANDBY" in str(exc), exc
-            noise.join()
-            assert link.query("SRL") == "REMOTE"
             assert link.query("STS") == "STANDBY"
-        finally:
-            link.close()
+        except DeviceError as exc:
+            assert "#~%" in str(exc) and "STANDBY" in str(exc), exc
+        noise.join()
+        assert link.query("SRL") == "REMOTE"
+        assert link.query("STS") == "STANDBY"
 
 
 def test_a_reply_later_than_its_window_is_not_read_as_the_resent_querys():
@@ -331,26 +352,16 @@ def test_a_stop_during_the_barrier_query_leaves_its_reply_to_the_grammar(sigint_
         src = L8121(server.url, dialect="B", **FAST)
         try:
             model.left_on()
-            model.silence(True, execute=True)
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.silence(False)
+            _unanswered(model, src.status, execute=True)
             model.slow(LATENCY_S / 2)  # the barrier's reply still on its way when the stop comes
             n = len(model.log)
 
-            def stop_in_the_barrier():
+            def in_the_barrier():
                 while not model.log[n:]:
                     time.sleep(0.002)
-                os.kill(os.getpid(), signal.SIGINT)
 
-            watcher = threading.Thread(target=stop_in_the_barrier, daemon=True)
-            watcher.start()
-            with pytest.raises(KeyboardInterrupt):
-                src.status()
-                time.sleep(TIMEOUT_S)
-            watcher.join(timeout=2)
+            _status_stopped_then_off(src, model, in_the_barrier)
             assert model.log[n].command != "STS"  # the barrier, not the STS, was in flight
-            assert src.off().confirms_off and not model.xray_on
             after = [(e.command, e.reply) for e in model.log[n + 1 :]]
             assert after[0] == ("XOF", "XOF"), after
             assert all(c == "STS" for c, _ in after[1:]) and after[-1][1] != "XON", after
@@ -427,31 +438,23 @@ def test_a_stop_in_the_reply_check_after_a_reply_past_its_window_costs_the_switc
     and gone (the s55 defect, back in this state); kept in the buffer until decided, it is
     discarded at once."""
     model = L8121Model(dialect="B", warmed_up=True, ramp_s=0.0)
-    with PtyServer(model) as server:
-        link = _b_link(server.url)
-        try:
-            model.silence(True)
-            with pytest.raises(NoReply):
-                link.query("STS")
-            model.silence(False)
-            time.sleep(TIMEOUT_S + 0.05)  # past the STS's window (a time-out from its own): nothing owed
-            grammar, armed = link.reply_fits, [True]
+    with PtyServer(model) as server, _b_link_after_a_lost_sts(model, server.url) as link:
+        time.sleep(TIMEOUT_S + 0.05)  # past the STS's window (a time-out from its own): nothing owed
+        grammar, armed = link.reply_fits, [True]
 
-            def stop_in_the_check(command, reply):
-                if armed and command == "SIN":
-                    armed.clear()
-                    raise KeyboardInterrupt
-                return grammar(command, reply)
+        def stop_in_the_check(command, reply):
+            if armed and command == "SIN":
+                armed.clear()
+                raise KeyboardInterrupt
+            return grammar(command, reply)
 
-            link.reply_fits = stop_in_the_check
-            with pytest.raises(KeyboardInterrupt):
-                link.query("SIN")
-            t0 = time.monotonic()
-            assert link.query("XOF") == "XOF"
-            took = time.monotonic() - t0
-            assert took < TIMEOUT_S / 4, f"XOF answered {took:.3f} s after the stop"
-        finally:
-            link.close()
+        link.reply_fits = stop_in_the_check
+        with pytest.raises(KeyboardInterrupt):
+            link.query("SIN")
+        t0 = time.monotonic()
+        assert link.query("XOF") == "XOF"
+        took = time.monotonic() - t0
+        assert took < TIMEOUT_S / 4, f"XOF answered {took:.3f} s after the stop"
 
 
 @pytest.mark.parametrize("dialect", ["A", "B"])
@@ -471,10 +474,7 @@ def test_a_slow_unit_is_never_sent_a_query_behind_an_unanswered_barrier(dialect)
     with PtyServer(model) as server:
         src = L8121(server.url, dialect=dialect, poll_s=0.05, min_interval_s=0.02, timeout_s=timeout_s)
         try:
-            model.silence(True)
-            with pytest.raises(DeviceError, match="no reply to STS"):
-                src.status()
-            model.silence(False)
+            _unanswered(model, src.status)
             model.slow(latency_s)
             n = len(model.log)
             with pytest.raises(DeviceError, match="STS not sent"):
@@ -499,10 +499,7 @@ def test_a_barrier_is_a_query_whose_reply_tells_it_apart_in_any_state():
         src = L8121(server.url, dialect="B", **FAST)
         try:
             model.sts_error(True)  # pre-heating, as B reports it
-            model.silence(True)
-            with pytest.raises(DeviceError, match="no reply to SIN"):
-                src.interlock_closed()
-            model.silence(False)
+            _unanswered(model, src.interlock_closed, "SIN")
             n, t0 = len(model.log), time.monotonic()
             assert src.interlock_closed() is True
             took = time.monotonic() - t0

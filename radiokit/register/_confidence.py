@@ -261,15 +261,15 @@ def robust_noise_map(f, window):
     neighbourhood, bilinear back to every pixel (float32, ``f``'s shape).
 
     ``noise_map``'s window mean of ``h^2`` takes in a rim's ``h`` (about half its step on every
-    pixel along it) with the noise: ~40x the true variance across a disc of contrast 100 whose
-    noise is 1 (its window spreads the rim's energy over the texture beside it). A median ignores
+    pixel along it) with the noise: many times the true variance beside a strong rim (its window spreads the rim's energy over the texture beside it). A median ignores
     a share ``e < 1/2`` of outliers up to reading the clean ``|h|``'s quantile ``1 / (2 (1 - e))``:
     a rim a few px wide crossing a tile of a window's sigma is ``e`` ~ 0.1-0.2 (``sigma`` read
     1.1-1.3x), and the 3 x 3 median leaves the tiles a line crosses (at most 5 of 9, mostly 3) out.
     Blocks whose four pixels are equal hold no noise (a collimated, clipped or masked part, as
     ``noise_sigma`` leaves them out): they enter the median as 0 and a huge value in equal numbers, which
     leaves a tile's median the live pixels' own; a tile with under a quarter live takes the
-    noise map's value. About 10 ms at 560 x 560 (window 24)."""
+    noise map's value. Its cost and what it changed: benchmarks/README.md, "The affine bound's noise
+    share from a rim-blind estimate (session 56)"."""
     f = np.asarray(f, np.float32)
     a, b, c, d = f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]
     h = np.abs(0.5 * (a - b - c + d))
@@ -290,8 +290,8 @@ def robust_noise_map(f, window):
     th = tiles(h)
     med = np.median(th, axis=-1)
     # a quantised image's |h| takes a few levels (steps of half a count): the median snaps to one,
-    # which read an integer frame's variance 0.5-1.65x (the noise's share underestimated: noise
-    # read as structure). Where the median is a level many values hold, the grouped median: the
+    # and the variance read is the level's, not the noise's (underestimated: noise read as
+    # structure; benchmarks/README.md, "Review of the rim-blind noise share"). Where the median is a level many values hold, the grouped median: the
     # level's values spread evenly over its bin (half-way to the next level either side, from 0 at 0)
     m = med[..., None]
     eq = np.count_nonzero(th == m, axis=-1)
@@ -306,7 +306,8 @@ def robust_noise_map(f, window):
     med = 1.4826 * med
     share = tiles(live).mean(axis=-1)
     if (share < 0.25).any():
-        # the noise map's value at the tiles' centres (computed only here: 5 ms at 560 x 560)
+        # the noise map's value at the tiles' centres (computed only here: it costs about as much
+        # as this whole map)
         fallback = noise_map(f, window)
         cy = np.minimum(np.arange(t0) * side + side // 2, n0 - 1)
         cx = np.minimum(np.arange(t1) * side + side // 2, n1 - 1)
@@ -594,9 +595,8 @@ def affine_lmins(gy, gx, spacing, bias, precision, step=1, project=True) -> tupl
     S = schur(F, prec)
     # an unbiased estimate of a PSD matrix is not PSD: where the window's structure is near the
     # noise's sampling error (the noise's share taken out exactly, its fluctuation left), the 6 x 6
-    # matrix is indefinite and its Schur complement negative, clipped to "unobserved" (up to 11 %
-    # of a training phantom's object; before session 56 also beside every strong rim, whose noise
-    # map's share was ~40x the noise). There its nearest information matrix (the negative
+    # matrix is indefinite and its Schur complement negative, clipped to "unobserved" (how much of
+    # an object: benchmarks/README.md, session 56). There its nearest information matrix (the negative
     # eigenvalues set to 0) keeps the marginal an information's. Found where the complement is
     # negative or exceeds the translation's own block (a marginal of a PSD matrix never does); only
     # there, since a 6 x 6 eigendecomposition at every sample doubles the cost (``project``: False,
@@ -713,7 +713,7 @@ def observability(
     return Observability(conf, bound, sigma, obj, pinned_conf, translation)
 
 
-def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2=None):
+def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2):
     """A window centre's information on its translation when the window moves by a local affine
     field (:func:`affine_lmins`), in the map's units; ``grads``: the map's (:func:`_map_gradients`);
     ``prior``: the prior standard deviation of each element of the displacement's gradient (px
@@ -722,7 +722,7 @@ def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2=None):
     translation's (:func:`_noise_lmin`): a marginal of pure noise is no larger, so this errs
     towards unobserved.
 
-    Two noise levels, for two things. ``bias_sig2`` (None: ``sig2``): the pixel noise's variance,
+    Two noise levels, for two things. ``bias_sig2``: the pixel noise's variance,
     whose share of each squared derivative is taken out of the moments: ``E[g g^T] = T + b I``
     for the noise alone, so an estimate ``b' > b`` leaves ``T - (b' - b) D``, indefinite wherever
     ``T`` is nearly singular (a rim's rotation about its centre of curvature), and the Schur
@@ -733,7 +733,7 @@ def _affine_info(grads, spacing, highpass, sig2, floor2, prior, bias_sig2=None):
     edge's gradients also wobble along it by ~1e-4 of the normal's, which it absorbs), the
     translation map's own units."""
     gy, gx, inside = grads
-    bias = _deriv_noise_var(1.0) * (sig2 if bias_sig2 is None else bias_sig2)
+    bias = _deriv_noise_var(1.0) * bias_sig2
     if inside is not None:
         bias = bias * inside  # (affine_lmins takes its window means: none outside the mask)
     area = _window_area(spacing)
